@@ -1,0 +1,1 @@
+"""glossrig.cli: the thin command-line layer over core, twin and hardware."""

@@ -1,0 +1,182 @@
+"""The capture folder contract (design.md): ``DIR/capture.json`` + raw files.
+
+Shared by the twin, the hardware layer and the pipeline. Top-level keys:
+``rig`` (path of the rig description, relative to the capture folder or
+absolute), ``rig_name``, ``material`` (a label only), ``complete`` (set once
+every planned image is on disk) and ``images``: one entry per raw file with at
+least ``file``, ``role`` (calibration / sequence / checkerboard), ``leds``,
+``rotation`` (deg), ``repeat``, ``exposure_s``, ``iso``, ``aperture``, ``time``
+(ISO 8601) and ``sha256``.
+
+Writes are atomic (temporary file + rename) so a crash never leaves a
+half-written manifest; nothing already written is overwritten silently.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+from .errors import InputError
+
+MANIFEST = "capture.json"
+TRUTH = "truth.json"
+ROLES = ("calibration", "sequence", "checkerboard")
+REQUIRED = ("file", "role", "leds", "rotation", "repeat", "exposure_s", "iso", "aperture", "time", "sha256")
+
+
+def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while True:
+            b = f.read(chunk)
+            if not b:
+                break
+            h.update(b)
+    return h.hexdigest()
+
+
+def now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same folder
+    and an atomic rename, fsynced: readers see the old file or the new one."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.name + ".", suffix=".part")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def atomic_write_json(path: str | Path, obj) -> None:
+    atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=False) + "\n").encode())
+
+
+@dataclass
+class ImageEntry:
+    file: str
+    role: str
+    leds: list[int]
+    rotation: float
+    repeat: int
+    exposure_s: float
+    iso: int
+    aperture: float
+    time: str
+    sha256: str
+    extra: dict = field(default_factory=dict)
+
+    def key(self) -> tuple:
+        """What identifies a planned shot (used for resume)."""
+        return (self.role, tuple(self.leds), float(self.rotation), int(self.repeat), float(self.exposure_s),
+                self.extra.get("view"))
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        extra = d.pop("extra")
+        d.update(extra)
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict, where: str) -> "ImageEntry":
+        missing = [k for k in REQUIRED if k not in d]
+        if missing:
+            raise InputError(f"image entry {d.get('file', '?')!r} lacks {', '.join(missing)}", path=where)
+        if d["role"] not in ROLES:
+            raise InputError(f"image {d['file']!r}: role {d['role']!r} not one of {ROLES}", path=where)
+        try:
+            exp = float(d["exposure_s"])
+        except (TypeError, ValueError):
+            raise InputError(f"image {d['file']!r}: exposure_s {d['exposure_s']!r} is not a number", path=where) from None
+        if not exp > 0:
+            raise InputError(f"image {d['file']!r}: exposure_s must be > 0, got {exp}", path=where)
+        extra = {k: v for k, v in d.items() if k not in REQUIRED}
+        return cls(file=str(d["file"]), role=d["role"], leds=[int(x) for x in d["leds"]], rotation=float(d["rotation"]),
+                   repeat=int(d["repeat"]), exposure_s=exp, iso=int(d["iso"]), aperture=float(d["aperture"]),
+                   time=str(d["time"]), sha256=str(d["sha256"]), extra=extra)
+
+
+@dataclass
+class Manifest:
+    folder: Path
+    rig: str
+    material: str
+    images: list[ImageEntry] = field(default_factory=list)
+    complete: bool = False
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def path(self) -> Path:
+        return self.folder / MANIFEST
+
+    def rig_path(self) -> Path:
+        p = Path(self.rig)
+        return p if p.is_absolute() else (self.folder / p).resolve()
+
+    def to_json(self) -> dict:
+        d = {"rig": self.rig, "material": self.material, "complete": self.complete}
+        d.update(self.meta)
+        d["images"] = [im.to_json() for im in self.images]
+        return d
+
+    def save(self) -> None:
+        atomic_write_json(self.path, self.to_json())
+
+    def select(self, role: str | None = None, **kw) -> list[ImageEntry]:
+        out = []
+        for im in self.images:
+            if role is not None and im.role != role:
+                continue
+            if "rotation" in kw and float(im.rotation) != float(kw["rotation"]):
+                continue
+            if "leds" in kw and im.leds != list(kw["leds"]):
+                continue
+            out.append(im)
+        return out
+
+    def rotations(self) -> list[float]:
+        return sorted({im.rotation for im in self.images if im.role == "sequence"})
+
+    def verify(self, check_hashes: bool = True) -> None:
+        """Every listed file exists (and matches its checksum)."""
+        for im in self.images:
+            f = self.folder / im.file
+            if not f.exists():
+                raise InputError(f"raw file listed in the manifest is missing", path=f)
+            if check_hashes and sha256_file(f) != im.sha256:
+                raise InputError("checksum does not match the manifest (file damaged or replaced)", path=f)
+
+
+def load_manifest(folder: str | Path) -> Manifest:
+    folder = Path(folder)
+    path = folder / MANIFEST
+    if not folder.is_dir():
+        raise InputError("capture folder not found", path=folder)
+    try:
+        d = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError("no capture manifest (capture.json) in this folder", path=folder) from None
+    except json.JSONDecodeError as e:
+        raise InputError(f"manifest is not valid JSON: {e}", path=path) from None
+    for k in ("rig", "material", "images"):
+        if k not in d:
+            raise InputError(f"manifest lacks key {k!r}", path=path)
+    images = [ImageEntry.from_json(x, str(path)) for x in d["images"]]
+    meta = {k: v for k, v in d.items() if k not in ("rig", "material", "images", "complete")}
+    return Manifest(folder=folder, rig=d["rig"], material=d["material"], images=images,
+                    complete=bool(d.get("complete", False)), meta=meta)

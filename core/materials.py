@@ -1,0 +1,94 @@
+"""Material descriptions: what a sample is made of, as data.
+
+A material spec (``glossrig simulate --material``) is one of
+``ward:rho_d=..,rho_s=..,alpha_x=..,alpha_y=..,lobe_rotation=..``,
+``lambert:ALBEDO``, ``measured:PATH`` (an RGL ``.bsdf`` file, Dupuy & Jakob 2018)
+or the name of a file in ``scenes/materials``.
+"""
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import InputError
+from .rig import SCENES_DIR
+from .ward import WardParams
+
+MATERIALS_DIR = SCENES_DIR / "materials"
+
+
+@dataclass(frozen=True)
+class Material:
+    kind: str                     # "ward" | "lambert" | "measured"
+    label: str
+    ward: WardParams | None = None
+    albedo: float | None = None
+    path: str | None = None
+
+    def to_json(self) -> dict:
+        d = {"kind": self.kind, "label": self.label}
+        if self.ward is not None:
+            d["ward"] = self.ward.as_dict()
+        if self.albedo is not None:
+            d["albedo"] = self.albedo
+        if self.path is not None:
+            d["path"] = self.path
+        return d
+
+
+def material_names() -> list[str]:
+    return sorted(p.stem for p in MATERIALS_DIR.glob("*.toml"))
+
+
+def _from_table(d: dict, label: str, where) -> Material:
+    kind = d.get("type")
+    if kind == "ward":
+        try:
+            w = WardParams(**{k: float(d[k]) for k in ("rho_d", "rho_s", "alpha_x", "alpha_y")},
+                           lobe_rotation=float(d.get("lobe_rotation", 0.0)))
+        except KeyError as e:
+            raise InputError(f"ward material lacks {e.args[0]}", path=where) from None
+        return Material("ward", label, ward=w)
+    if kind == "lambert":
+        return lambert(float(d.get("albedo", -1)), label)
+    if kind == "measured":
+        return measured(d["path"], label)
+    raise InputError(f"material type must be ward, lambert or measured, got {kind!r}", path=where)
+
+
+def lambert(albedo: float, label: str | None = None) -> Material:
+    if not (0 <= albedo <= 1):
+        raise InputError(f"Lambertian albedo must lie in [0, 1], got {albedo}")
+    return Material("lambert", label or f"lambert:{albedo:g}", albedo=albedo)
+
+
+def measured(path: str | Path, label: str | None = None) -> Material:
+    p = Path(path)
+    if not p.is_file():
+        raise InputError("measured BSDF file not found", path=p)
+    return Material("measured", label or p.stem, path=str(p.resolve()))
+
+
+def parse_material(spec: str) -> Material:
+    """Parse a material spec (see module docstring); errors name the spec."""
+    spec = spec.strip()
+    if spec.startswith("ward:"):
+        return Material("ward", spec, ward=WardParams.parse(spec[5:]))
+    if spec.startswith("lambert:"):
+        try:
+            a = float(spec[8:])
+        except ValueError:
+            raise InputError(f"lambert:ALBEDO expects a number, got {spec!r}") from None
+        return lambert(a, spec)
+    if spec.startswith("measured:"):
+        return measured(spec[9:])
+    f = MATERIALS_DIR / f"{spec}.toml"
+    if not f.is_file():
+        raise InputError(f"unknown material {spec!r}: not ward:/lambert:/measured: and not one of "
+                         f"{', '.join(material_names())}")
+    try:
+        d = tomllib.loads(f.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"not valid TOML: {e}", path=f) from None
+    return _from_table(d, spec, f)
