@@ -1,0 +1,176 @@
+"""The virtual rig: the twin as a device (lights + camera sharing one simulated rig).
+
+Renders once per (LED, sample rotation) to linear radiance and derives every
+exposure and repeat in the sensor model (issue 2: never re-render per
+exposure). The hardware layer's twin backends and ``glossrig simulate`` both
+drive this class; the geometry it renders with (LED positions after
+``led_position_error``, sample radius, rotation offset) is what truth.json
+records.
+
+A simulated capture clock advances by each shot's exposure plus the rig's
+per-shot overhead (thesis 4.2.3: ~4 min per 18-exposure sequence whose
+exposures sum to ~62 s, i.e. ~9.9 s per shot), so the LED drift and the
+manifest's timestamps follow the real capture's time line. The clock starts at
+:data:`T0` so captures are reproducible.
+"""
+from __future__ import annotations
+
+import math
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import numpy as np
+
+from glossrig.core.errors import InputError
+from glossrig.core.materials import Material
+from glossrig.core.rig import Rig
+
+from .effects import EffectState
+from .render import LensMap, render_array
+from .sensor import frame_rng
+from .scene import LED_RGB, MM, SceneSpec, new_workdir, sample_scene
+
+T0 = datetime(2026, 1, 1, 9, 0, 0, tzinfo=timezone.utc)
+SHOT_OVERHEAD_S = (240.0 - 62.0) / 18.0
+
+
+class VirtualRig:
+    def __init__(self, rig: Rig, material: Material, *, scale: float = 0.25, seed: int = 0,
+                 effects: dict[str, float] | None = None, spp: int = 4):
+        from .sensor import SensorModel
+
+
+        if not (0.01 <= scale <= 1.0):
+            raise InputError(f"scale must lie in [0.01, 1], got {scale}")
+        self.rig, self.material, self.scale, self.seed, self.spp = rig, material, scale, seed, spp
+        self.effects = EffectState(dict(effects or {}), seed, rig.led_ids())
+        self.sensor = SensorModel.from_rig(rig)
+        self.lens = LensMap.build(rig.camera, scale)
+        self.camera_R, self.camera_t = rig.camera.pose()
+        self.sample_radius = rig.cylinder_radius + self.effects.get("sample_radius_error")
+        self.led_positions = {led.id: self.effects.led_position(led) for led in rig.leds}
+        self.intensity = float(rig.section("leds")["radiant_intensity_W_sr"])
+        self._workdir = new_workdir()
+        spec = SceneSpec(sample_radius=self.sample_radius, camera_R=self.camera_R, camera_t=self.camera_t,
+                         canvas=self.lens.canvas, focal=self.lens.focal, spp=spp, led_positions=self.led_positions)
+        self._spec = spec
+        self.scene, self.params = sample_scene(rig, material, spec, Path(self._workdir.name))
+        self._points = None
+        self._vignette = self.effects.vignetting_factor(self.lens.size, self.lens.K)
+        self._hot = self.effects.hot_pixel_mask(self.lens.size, seed)
+        self._cache: dict[tuple, np.ndarray] = {}
+        self.rotation = 0.0
+        self.on: list[int] = []
+        self.clock_s = 0.0
+        self.frame = 0
+
+    # --- device-like interface ---------------------------------------------
+    def set_rotation(self, deg: float) -> None:
+        self.rotation = float(deg)
+        if self.material.kind == "ward":
+            self._cache.clear()     # renders depend on the rotation
+
+    def switch(self, led_ids) -> None:
+        ids = [int(i) for i in led_ids]
+        for i in ids:
+            self.rig.led(i)
+        self.on = ids
+
+    def now(self) -> datetime:
+        return T0 + timedelta(seconds=self.clock_s)
+
+    def shoot(self, path, exposure_s: float, iso: int, aperture: float, overwrite: bool = False) -> str:
+        """Expose the current light state and write a DNG; returns its sha256."""
+        from .dng import write_dng
+
+        rng = frame_rng(self.seed, self.frame)
+        radiance = self.image_radiance(self.on, rng)
+        cam = self.rig.camera
+        hooks = _DnHooks(self.effects, self._hot, cam)
+        mosaic = self.sensor.expose(radiance, exposure_s, iso, aperture, rng, effects=hooks, frame_index=self.frame)
+        when = self.now()
+        digest = write_dng(path, mosaic, cfa=cam.cfa, black_level=cam.black_level, white_level=cam.white_level,
+                           exposure_s=exposure_s, iso=iso, aperture=aperture, time=when, overwrite=overwrite)
+        self.clock_s += exposure_s + SHOT_OVERHEAD_S
+        self.frame += 1
+        return digest
+
+    # --- radiometry -----------------------------------------------------------
+    def points_mm(self) -> np.ndarray:
+        """Holder-frame position (mm) of the surface each output pixel sees (0 where none)."""
+        if self._points is None:
+            from .mitsuba_env import mitsuba
+
+            scene, _ = sample_scene(self.rig, self.material, self._spec, Path(self._workdir.name), aov=True)
+            aov = render_array(scene, spp=1)
+            self._points = self.lens.apply(aov[..., 3:6], nearest=True) / MM
+            del scene
+        return self._points
+
+    def led_radiance(self, led_id: int) -> np.ndarray:
+        """Linear radiance (h, w, 3) W m^-2 sr^-1 with only ``led_id`` on at its nominal
+        output (emission pattern and vignetting included; gain and stray light not)."""
+        key = (led_id, self.rotation if self.material.kind == "ward" else 0.0)
+        if key not in self._cache:
+            from .mitsuba_env import mitsuba
+
+            mi = mitsuba()
+            pos = self.led_positions[led_id]
+            self.params["led.position"] = mi.Point3f(*[p * MM for p in pos])
+            self.params["led.intensity.value"] = mi.Color3f(*[self.intensity * c for c in LED_RGB])
+            if self.material.kind == "ward":
+                rot = math.radians(self.rotation + self.effects.get("sample_rotation_offset"))
+                self.params["sample.bsdf.tangent_rotation"] = rot
+            self.params.update()
+            img = self.lens.apply(render_array(self.scene, seed=self.seed * 1000 + led_id))
+            f = self.effects.emission_factor(led_id, pos, self.points_mm())
+            if f is not None:
+                img *= f[..., None]
+            if self._vignette is not None:
+                img *= self._vignette[..., None]
+            self._cache[key] = img
+        return self._cache[key]
+
+    def image_radiance(self, led_ids, rng: np.random.Generator) -> np.ndarray:
+        w, h = self.lens.size
+        out = np.zeros((h, w, 3), np.float32)
+        for i in led_ids:
+            g = self.effects.led_gain(i, self.clock_s, rng)
+            out += g * self.led_radiance(i)
+            s = self.effects.stray_radiance(self.intensity, float(np.linalg.norm(self.led_positions[i])))
+            if s:
+                out += g * s * np.asarray(LED_RGB, np.float32) * (self._vignette[..., None] if self._vignette is not None else 1.0)
+        return out
+
+    # --- truth ------------------------------------------------------------------
+    def truth(self) -> dict:
+        cam = self.rig.camera
+        return {
+            "material": self.material.to_json(),
+            "rig": {"path": self.rig.path, "name": self.rig.name},
+            "scale": self.scale, "seed": self.seed, "spp": self.spp,
+            "image_size": list(self.lens.size),
+            "camera_matrix": self.lens.K.tolist(), "distortion": list(cam.distortion),
+            "camera_R_holder_to_camera": self.camera_R.tolist(), "camera_t_mm": self.camera_t.tolist(),
+            "cylinder_R_in_holder": np.eye(3).tolist(), "cylinder_t_mm": [0.0, 0.0, 0.0],
+            "sample_radius_mm": self.sample_radius, "sample_height_mm": self.rig.sample_height,
+            "led_positions_mm": {str(k): list(v) for k, v in self.led_positions.items()},
+            "led_radiant_intensity_W_sr": self.intensity, "led_rgb": list(LED_RGB),
+            "sample_rotation_offset_deg": self.effects.get("sample_rotation_offset"),
+            "effects": self.effects.to_json(),
+            "shot_overhead_s": SHOT_OVERHEAD_S, "clock_start": T0.isoformat(),
+        }
+
+
+class _DnHooks:
+    """Adapter giving the sensor model (``post_dn`` stage) the effects that act on
+    the raw signal: nonlinearity, black-level offset, hot pixels."""
+
+    def __init__(self, effects: EffectState, hot, camera):
+        self.effects, self.hot, self.camera = effects, hot, camera
+
+    def post_dn(self, dn, ctx):
+        h, w = dn.shape
+        black = np.tile(ctx.sensor.black_2x2().astype(np.float32), (h // 2, w // 2))
+        return self.effects.apply_dn(dn, black, self.camera.white_level, ctx.exposure_s,
+                                     ctx.sensor.conversion_gain(ctx.iso), self.hot).astype(np.float32)
