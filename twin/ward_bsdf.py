@@ -26,14 +26,14 @@ class WardBSDF(mi.BSDF):
         mi.BSDF.__init__(self, props)
 
         def read(name, default):
-            return mi.Color3f(props[name]) if props.has_property(name) else mi.Color3f(default)
+            return mi.Color3f(props[name]) if name in props else mi.Color3f(default)
 
         self.rho_d = read("rho_d", 0.5)
         self.rho_s = read("rho_s", 0.0)
-        self.alpha_x = mi.Float(props["alpha_x"] if props.has_property("alpha_x") else 0.1)
-        self.alpha_y = mi.Float(props["alpha_y"] if props.has_property("alpha_y") else 0.1)
-        self.lobe_rotation = mi.Float(props["lobe_rotation"] if props.has_property("lobe_rotation") else 0.0)
-        self.tangent_rotation = mi.Float(props["tangent_rotation"] if props.has_property("tangent_rotation") else 0.0)
+        self.alpha_x = mi.Float(props["alpha_x"] if "alpha_x" in props else 0.1)
+        self.alpha_y = mi.Float(props["alpha_y"] if "alpha_y" in props else 0.1)
+        self.lobe_rotation = mi.Float(props["lobe_rotation"] if "lobe_rotation" in props else 0.0)
+        self.tangent_rotation = mi.Float(props["tangent_rotation"] if "tangent_rotation" in props else 0.0)
         flags = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide \
             | mi.BSDFFlags.Anisotropic
         self.m_components = [mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide,
