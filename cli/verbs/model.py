@@ -1,0 +1,197 @@
+"""The gloss reproduction model (thesis chapter 6, section 7.2.1).
+
+  glossrig model crossval --ward WARD.csv --coverages COV.csv --out cv.json
+      leave-one-out cross-validation of Table 7.1's three methods, with
+      automatic detection of fabrication outliers (the thesis dropped 4/6 by hand)
+  glossrig model fit --ward WARD.csv --coverages COV.csv --out model.json
+      fit the two bases and the effective-to-nominal sigmoid (eq. 6.1-6.8)
+  glossrig model predict --model model.json --ward rho_d=..,rho_s=..,alpha_x=..,alpha_y=..,lobe_rotation=..
+      nominal coverage to fabricate for a target material, and its gamut distance
+
+WARD.csv holds the samples' fitted Ward parameters (columns name, rho_d, rho_s,
+alpha_x, alpha_y, lobe_rotation); COV.csv their nominal coverages (columns
+sample, nominal_b2). Sample "0/6" matches Ward row "sample_0_6".
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from glossrig.core.errors import InputError
+
+HELP = "reproduction model: cross-validate, fit, predict the nominal coverage (thesis ch. 6)"
+
+
+def _add_data_args(p) -> None:
+    p.add_argument("--ward", required=True, metavar="CSV", help="samples' Ward parameters (thesis Table 9.1 layout)")
+    p.add_argument("--coverages", required=True, metavar="CSV",
+                   help="samples' nominal coverages, column nominal_b2 (thesis Table 6.2)")
+    p.add_argument("--exclude", default="auto", metavar="auto|none|NAMES",
+                   help="samples left out of the fit: 'auto' = detected fabrication outliers (default), "
+                        "'none', or comma-separated names such as 4/6")
+    p.add_argument("--rig", default=None, metavar="TOML", help="rig description (default: scenes/thesis_rig.toml)")
+    p.add_argument("--scale", type=float, default=None,
+                   help="camera image scale for the measurement angles (default 0.05)")
+    p.add_argument("--max-angles", type=int, default=None,
+                   help="subsample the measurement angles to at most this many (default 12000)")
+    p.add_argument("--starts", type=int, default=3,
+                   help="deterministic starting points of the base-2 fit per model (default 3)")
+    p.add_argument("--out", required=True, metavar="JSON", help="output file")
+
+
+def add_arguments(parser) -> None:
+    sub = parser.add_subparsers(dest="model_verb", metavar="SUBVERB", required=True)
+    p = sub.add_parser("crossval", help="leave-one-out cross-validation of Table 7.1's three methods")
+    _add_data_args(p)
+    p.set_defaults(func=_crossval)
+    p = sub.add_parser("fit", help="fit bases and ETN sigmoid, write model.json")
+    _add_data_args(p)
+    p.add_argument("--no-clip", action="store_true", help="do not clip BRDF values at 1.0 (eq. 6.5)")
+    p.set_defaults(func=_fit)
+    p = sub.add_parser("predict", help="nominal coverage to fabricate for a target's Ward parameters")
+    p.add_argument("--model", required=True, metavar="JSON", help="model written by 'glossrig model fit'")
+    p.add_argument("--ward", required=True, metavar="PARAMS",
+                   help="target: rho_d=..,rho_s=..,alpha_x=..,alpha_y=..[,lobe_rotation=..] (radians)")
+    p.add_argument("--json", action="store_true", help="print the prediction as JSON")
+    p.set_defaults(func=_predict)
+
+
+def run(args) -> int:
+    return args.func(args)
+
+
+def _progress(t0: float):
+    def say(msg: str) -> None:
+        print(f"[{time.monotonic() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+    return say
+
+
+def _exclude(spec: str, samples):
+    s = spec.strip()
+    if s == "auto":
+        return None
+    if s == "none":
+        return []
+    names = [n.strip() for n in s.split(",") if n.strip()]
+    if not names:
+        raise InputError(f"--exclude: expected 'auto', 'none' or sample names, got {spec!r}")
+    for n in names:
+        samples.index(n)          # unknown sample -> InputError
+    return names
+
+
+def _starts(args) -> int:
+    if args.starts < 1:
+        raise InputError(f"--starts must be >= 1, got {args.starts}")
+    return args.starts
+
+
+def _check_out(path: str) -> Path:
+    p = Path(path)
+    if p.is_dir():
+        raise InputError("output is a directory", path=p)
+    if not p.parent.is_dir():
+        raise InputError("output folder does not exist", path=p)
+    return p
+
+
+def _write_json(path: Path, data: dict) -> None:
+    """Write atomically: a failed or interrupted run leaves any earlier file intact."""
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent or ".")
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=1)
+            f.write("\n")
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except OSError as e:
+        raise InputError(f"cannot write: {e.strerror}", path=path) from None
+
+
+def _angles(args):
+    from glossrig.core import reproduction as R
+
+    kw = {}
+    if args.scale is not None:
+        kw["scale"] = args.scale
+    if args.max_angles is not None:
+        kw["max_samples"] = args.max_angles
+    return R.rig_angles(args.rig, **kw)
+
+
+def _crossval(args) -> int:
+    from glossrig.core import reproduction as R
+
+    out = _check_out(args.out)
+    samples = R.load_samples(args.ward, args.coverages)
+    exclude = _exclude(args.exclude, samples)
+    t0 = time.monotonic()
+    say = _progress(t0)
+    angles = _angles(args)
+    say(f"{len(samples)} samples, {len(angles)} measurement angle sets")
+    res = R.cross_validate(samples, angles, exclude=exclude, progress=say, n_starts=_starts(args))
+    res["inputs"] = {"ward": str(args.ward), "coverages": str(args.coverages)}
+    res["seconds"] = round(time.monotonic() - t0, 1)
+    _write_json(out, res)
+    print(f"outliers ({'detected' if exclude is None else 'given'}): {', '.join(res['outliers']) or 'none'}")
+    print("method  used samples                         preprocessing     error mean  error std")
+    for m in res["methods"]:
+        used = "all" if not m["excluded"] else "all but " + ", ".join(m["excluded"])
+        print(f"{m['method']:>6}  {used:<36} {m['preprocessing']:<17} {m['error_mean']:10.3f} {m['error_std']:10.3f}")
+    print(f"wrote {out}")
+    return 0
+
+
+def _fit(args) -> int:
+    from glossrig.core import reproduction as R
+
+    out = _check_out(args.out)
+    samples = R.load_samples(args.ward, args.coverages)
+    exclude = _exclude(args.exclude, samples)
+    t0 = time.monotonic()
+    say = _progress(t0)
+    angles = _angles(args)
+    clip = None if args.no_clip else R.CLIP_LEVEL
+    model = R.fit_excluding_outliers(samples, angles, clip, exclude, progress=say, n_starts=_starts(args))
+    data = model.to_json()
+    data["fit"]["inputs"] = {"ward": str(args.ward), "coverages": str(args.coverages)}
+    _write_json(out, data)
+    b2 = model.base2
+    print(f"excluded: {', '.join(model.fit_info['excluded']) or 'none'} ({model.fit_info['exclusion']})")
+    print(f"base 1 = {model.base1_name}; base 2: rho_d={b2.rho_d:.4f} rho_s={b2.rho_s:.4f} alpha_x={b2.alpha_x:.4f} "
+          f"alpha_y={b2.alpha_y:.4f} lobe_rotation={b2.lobe_rotation:.3f}")
+    print("ETN: " + data["etn"]["form"] + "  gamma = " + ", ".join(f"{g:.6g}" for g in model.etn.gamma))
+    print("sample   nominal  effective  ETN(effective)")
+    for t in model.training:
+        print(f"{t['sample']:<8} {t['nominal_b2']:7.3f} {t['effective_b2']:10.3f} {t['etn_nominal_b2']:15.3f}")
+    print(f"wrote {out}")
+    return 0
+
+
+def _predict(args) -> int:
+    from glossrig.core import reproduction as R
+    from glossrig.core.ward import WardParams
+
+    model = R.ReproductionModel.load(args.model)
+    target = WardParams.parse(args.ward)
+    pr = model.predict(target)
+    if args.json:
+        print(json.dumps(pr.to_json(), indent=1))
+    else:
+        print(f"nominal coverage (base 2, scratched area fraction): {pr.nominal_b2:.3f}")
+        print(f"nominal coverage of base 1 (unscratched): {pr.nominal_b1:.3f}")
+        print(f"effective coverage (base 2): {pr.effective_b2:.3f}")
+        print(f"distance of the best mix from the target: rms {pr.rms_distance:.4g} /sr, relative {pr.relative_distance:.3f}"
+              f" = {pr.gamut_ratio:.2f} x the training samples' largest ({pr.gamut_threshold:.3f})")
+        print(f"gamut: {pr.gamut}")
+    if pr.gamut != "in":
+        print(f"glossrig model predict: warning: target is {'near' if pr.gamut == 'near' else 'out of'} the gamut: "
+              f"the best achievable mix is {pr.gamut_ratio:.2f} x further from it than any fabricated sample is from "
+              "the model", file=sys.stderr)
+    return 0
