@@ -46,6 +46,7 @@ class ShotInfo:
     iso: float
     aperture: float
     camera: str | None = None
+    time: str | None = None    # ISO 8601 capture time when the camera keeps its own clock (the twin's)
 
 
 @runtime_checkable

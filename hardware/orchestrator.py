@@ -303,7 +303,7 @@ class CaptureRun:
             extra["view"] = shot.view
         return ImageEntry(file=name, role=shot.role, leds=list(shot.leds), rotation=shot.rotation,
                           repeat=shot.repeat, exposure_s=shot.exposure_s, iso=shot.iso, aperture=shot.aperture,
-                          time=started, sha256=digest, extra=extra)
+                          time=info.time or started, sha256=digest, extra=extra)
 
     def _operator(self, fn, *args) -> None:
         self.lights.all_off()
@@ -367,17 +367,19 @@ class CaptureRun:
         n = len(self.manifest.images) if self.manifest else 0
         total = len(self.shots)
         kept = f"{n} of {total} images are safe in {self.out}"
+        text = str(e).rstrip()
+        end = "" if text.endswith((".", "?", "!")) else "."
         if isinstance(e, CameraDisconnected):
-            return f"camera lost: {e}. {kept}; reconnect the camera and rerun with --resume."
+            return f"camera lost: {text}{end} {kept}; reconnect the camera and rerun with --resume."
         if isinstance(e, LightsError):
-            return f"LED switching failed: {e}. {kept}; check the relay board and rerun with --resume."
+            return f"LED switching failed: {text}{end} {kept}; check the relay board and rerun with --resume."
         if isinstance(e, DeviceError):
-            return f"{e}. {kept}; fix the cause and rerun with --resume."
+            return f"{text}{end} {kept}; fix the cause and rerun with --resume."
         if isinstance(e, OSError) and e.errno == errno.ENOSPC:
             return f"disk full ({e}). {kept}; free some space and rerun with --resume."
         if isinstance(e, OSError):
             return f"file system error ({e}). {kept}; rerun with --resume once it is fixed."
-        return f"{e}. {kept}; rerun with --resume to continue."
+        return f"{text}{end} {kept}; rerun with --resume to continue."
 
     def run(self) -> CaptureReport:
         self.open_folder()

@@ -60,10 +60,13 @@ iso = 3200
 aperture = 11.0
 
 [twin]                           # only read by the twin backends
-material = "lambert:0.8"
-scale = 0.1
+material = "lambert:0.8"         # ward:..., lambert:ALBEDO, measured:PATH or a scenes/materials name
+scale = 0.1                      # image scale of the 6032 x 4032 sensor (0.01..1)
 seed = 1
-effects = []
+effects = "led_drift=0.02"       # named non-idealities, as glossrig simulate --effects;
+                                 # default: the thesis's LED fluctuations (led_jitter, led_drift)
+ideal = false                    # true: none of the default fluctuations
+spp = 4                          # Mitsuba samples per pixel
 """
 
 ROLE_ORDER = ("checkerboard", "calibration", "sequence")
@@ -71,7 +74,7 @@ _TOP_KEYS = {"rig", "sample", "rotations", "leds", "repeats", "exposures_s", "ca
              "calibration_exposure_s", "calibration_iso", "calibration_aperture", "overhead_s_per_shot",
              "settle_s", "checkerboard", "twin"}
 _CHECKER_KEYS = {"views", "leds", "exposure_s", "iso", "aperture"}
-_TWIN_KEYS = {"material", "scale", "seed", "effects"}
+_TWIN_KEYS = {"material", "scale", "seed", "effects", "ideal", "spp"}
 
 
 @dataclass(frozen=True)
@@ -363,9 +366,12 @@ def load_plan(path: str | Path) -> CapturePlan:
         _number(twin, "scale", path, hi=1.0, where="twin.")
     if "seed" in twin:
         _integer(twin, "seed", path, lo=0, where="twin.")
-    if "effects" in twin and not (isinstance(twin["effects"], list)
-                                  and all(isinstance(e, str) for e in twin["effects"])):
-        raise _fail(f"twin.effects must be a list of effect names, got {twin['effects']!r}", path)
+    if "spp" in twin:
+        _integer(twin, "spp", path, lo=1, where="twin.")
+    if "ideal" in twin and not isinstance(twin["ideal"], bool):
+        raise _fail(f"twin.ideal must be true or false, got {twin['ideal']!r}", path)
+    if "effects" in twin and not isinstance(twin["effects"], str):
+        raise _fail(f"twin.effects must be a string \"name=value,name=value\", got {twin['effects']!r}", path)
 
     return CapturePlan(
         path=str(path), text_sha256=hashlib.sha256(text).hexdigest(), rig=rig, rig_path=rig_path,

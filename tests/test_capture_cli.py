@@ -34,7 +34,7 @@ def cli(*args, env_extra=None, **kw):
     env.pop("GLOSSRIG_FAKE_CAMERA", None)
     env.pop("GLOSSRIG_FAKE_LIGHTS", None)
     env.update(env_extra or {})
-    return subprocess.Popen([sys.executable, "-m", "glossrig.cli.main", "capture", *args], env=env,
+    return subprocess.Popen([sys.executable, "-m", "glossrig.cli.main", "capture", "--min-free-mb", "1", *args], env=env,
                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             **kw)
 

@@ -19,9 +19,10 @@ from glossrig.core.rig import REPO_ROOT
 from glossrig.hardware.camera import Gphoto2Camera
 from glossrig.hardware.errors import CaptureError
 from glossrig.hardware.fakes import DeadRelayPin, FakeCameraBody, FakeGphoto2
-from glossrig.hardware.lights import GpioRelayLights
+from glossrig.hardware.lights import GpioRelayLights, NumatoRelayLights
 from glossrig.hardware.orchestrator import SET_ASIDE, run_capture
 from glossrig.hardware.plan import load_plan
+from glossrig.hardware.serial_sims import NumatoRelaySim
 
 RIG = REPO_ROOT / "scenes" / "thesis_rig.toml"
 
@@ -354,3 +355,25 @@ def test_rotations_and_checkerboard_ask_the_operator_with_leds_off(tmp_path):
     boards = m.select("checkerboard")
     assert [im.extra["view"] for im in boards] == [0, 1] and boards[0].iso == 800
     assert sorted({im.rotation for im in m.select("sequence")}) == [0.0, 45.0]
+
+
+def test_serial_relay_board_that_stops_answering_mid_capture(tmp_path):
+    """A serial timeout on the relay board: the capture stops with the board named, what
+    was shot is kept, and the LEDs end off once the board answers again."""
+    r = make(tmp_path)
+    # commands: ver, off (2) at start-up, off (2) when the run starts, off (2) before the rotation
+    # prompt, calibration (2); replies to commands 11-13 are lost: the read-back after switching
+    # LED 1 on fails twice, then the first attempt to switch everything off
+    with NumatoRelaySim(16, mute_after=10, mute_count=3) as sim:
+        lights = NumatoRelayLights(r.plan.rig, sim.port, timeout_s=0.1, retries=1)
+        r = r._replace(lights=lights)
+        out = tmp_path / "cap"
+        with pytest.raises(CaptureError) as ei:
+            capture(r, out)
+        msg = str(ei.value)
+        assert "LED switching failed" in msg and "no reply to 'relay readall'" in msg and "relay board on" in msg
+        assert "1 of 9 images are safe" in msg and "The LEDs are off." in msg, msg
+        assert sim.on_relays() == set()
+        m = load_manifest(out)
+        assert [im.role for im in m.images] == ["calibration"]
+        m.verify()
