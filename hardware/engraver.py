@@ -112,17 +112,21 @@ class GrblEngraver:
         self._wpos = None
         self._partial = b""
         self._last_rx = time.monotonic()
-        if reset_on_connect:
-            self._write(b"\x18")
-            deadline = time.monotonic() + startup_s
-            banner = False
-            while time.monotonic() < deadline and not banner:
-                line = self._readline()
-                banner = line is not None and line.startswith("Grbl")
-            if not banner:
-                raise EngraverError(f"no GRBL start-up banner within {startup_s:g} s after a reset; is this a GRBL "
-                                    "controller at this baud rate?", device=self.name)
-        self._query_status()
+        try:
+            if reset_on_connect:
+                self._write(b"\x18")
+                deadline = time.monotonic() + startup_s
+                banner = False
+                while time.monotonic() < deadline and not banner:
+                    line = self._readline()
+                    banner = line is not None and line.startswith("Grbl")
+                if not banner:
+                    raise EngraverError(f"no GRBL start-up banner within {startup_s:g} s after a reset; is this a "
+                                        "GRBL controller at this baud rate?", device=self.name)
+            self._query_status()
+        except BaseException:
+            self._port.close()
+            raise
 
     # -- low level
     def _write(self, data: bytes) -> None:
@@ -332,7 +336,11 @@ class RolandEngraver:
         self._capacity = None
         self._pos = (None, None, None)
         self._streaming = False
-        self.capacity()      # a machine that does not answer fails here, not mid-stream
+        try:
+            self.capacity()      # a machine that does not answer fails here, not mid-stream
+        except BaseException:
+            self._port.close()
+            raise
 
     def _write(self, data: bytes) -> None:
         with self._wlock:

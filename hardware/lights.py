@@ -218,8 +218,12 @@ class NumatoRelayLights(RelayLights):
         self.name = f"relay board on {port_name(port)}"
         self._port = open_port(port, baudrate=baudrate, timeout=timeout_s, error=LightsError)
         self._bit = {led.id: led.channel - 1 for led in rig.leds}
-        self._command("ver")     # a board that does not speak the protocol fails here, not mid-capture
-        self.all_off()
+        try:
+            self._command("ver")     # a board that does not speak the protocol fails here, not mid-capture
+            self.all_off()
+        except BaseException:
+            self._port.close()
+            raise
 
     def _command(self, cmd: str) -> list[str]:
         """Send one command; return the reply's lines after the echo."""

@@ -243,7 +243,7 @@ def parse_gcode(lines: Iterable[str], source: str = "<toolpath>") -> Toolpath:
 
 # ------------------------------------------------------------------ RML-1
 
-_RML_NONMOTION = {"IN", "DF", "!MC", "!RC", "!DW", "!NR", "V", "VS", "!VZ", "F", "!PZ", "PA", "PR", "PU", "PD",
+_RML_KNOWN = {"IN", "DF", "!MC", "!RC", "!DW", "!NR", "V", "VS", "!VZ", "F", "!PZ", "PA", "PR", "PU", "PD",
                   "Z", "H"}
 _RML_MNEMONIC = re.compile(r"^(?:(!|\^)([A-Z]{2})|(VS|PA|PR|PU|PD|IN|DF)|([ZVFH]))(.*)$", re.S)
 
@@ -293,7 +293,7 @@ def parse_rml(text: str, source: str = "<toolpath>", *, units_per_mm: float = 10
         name = (prefix + two if prefix else None) or hp or one
         if prefix == "^":
             name = two
-        if name not in _RML_NONMOTION:
+        if name not in _RML_KNOWN:
             tp.problems.append(f"line {n}: RML-1 instruction {name!r} is not known to the pre-send check")
             continue
         rest = rest.strip()

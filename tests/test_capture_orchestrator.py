@@ -6,14 +6,13 @@ with the LEDs off, a message that says what is safe, and nothing already capture
 from __future__ import annotations
 
 import errno
-import os
 from collections import namedtuple
 from pathlib import Path
 
 import pytest
 from gpiozero.pins.mock import MockFactory
 
-from glossrig.core.capture import MANIFEST, REQUIRED, load_manifest, sha256_file
+from glossrig.core.capture import MANIFEST, REQUIRED, load_manifest
 from glossrig.core.errors import InputError
 from glossrig.core.rig import REPO_ROOT
 from glossrig.hardware.camera import Gphoto2Camera
