@@ -51,6 +51,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.name + ".", suffix=".part")
     try:
         with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), 0o644)   # mkstemp creates 0600; captures are shared lab data
             f.write(data)
             f.flush()
             os.fsync(f.fileno())

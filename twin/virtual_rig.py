@@ -9,7 +9,7 @@ records.
 
 A simulated capture clock advances by each shot's exposure plus the rig's
 per-shot overhead (thesis 4.2.3: ~4 min per 18-exposure sequence whose
-exposures sum to ~62 s, i.e. ~9.9 s per shot), so the LED drift and the
+exposures sum to 61.0 s, i.e. ~9.9 s per shot), so the LED drift and the
 manifest's timestamps follow the real capture's time line. The clock starts at
 :data:`T0` so captures are reproducible.
 """
@@ -31,7 +31,7 @@ from .sensor import frame_rng
 from .scene import LED_RGB, MM, SceneSpec, new_workdir, sample_scene
 
 T0 = datetime(2026, 1, 1, 9, 0, 0, tzinfo=timezone.utc)
-SHOT_OVERHEAD_S = (240.0 - 62.0) / 18.0
+SHOT_OVERHEAD_S = (240.0 - 61.00725) / 18.0   # Table 4.1's exposures sum to 61.00725 s
 
 
 class VirtualRig:
