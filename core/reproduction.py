@@ -46,8 +46,15 @@ is implemented):
   starts, lobe rotation 2.6 rad as in Table 6.3, effective coverages started at
   the nominal ones), keeping the lowest eq. 6.6 cost, so results are
   reproducible.
-* **Outliers.** The thesis removed sample 4/6 by hand. :func:`detect_outliers`
-  flags fabrication outliers with a stated leave-one-out criterion.
+* **Outliers.** The thesis removed sample 4/6 by hand because it "does not
+  fulfill the assumption to lie between 3/6 and 5/6". :func:`detect_outliers`
+  makes that argument a stated criterion (:data:`OUTLIER_CRITERION`): the
+  fitted effective coverages must not fall as nominal coverage rises. Its
+  tolerance of 0.05 effective coverage is our choice; 4/6's violations in the
+  thesis data are 0.21 and 0.45.
+* **Gamut.** The thesis names materials in or out of the gamut (7.2.3) without a
+  test. :meth:`ReproductionModel.predict` reports the distance of the best mix
+  relative to the largest distance among the fabricated training samples.
 """
 from __future__ import annotations
 
@@ -643,16 +650,16 @@ class ReproductionModel:
             "training": list(self.training),
             "fit": dict(self.fit_info),
             # The angle set itself, so the model predicts without the rig file; rounded
-            # to 1e-7 rad (far below the 0.7 deg theta_h spacing of the samples).
+            # to 1e-6 rad (far below the 0.7 deg = 0.012 rad theta_h spacing of the samples).
             "angles": {**self.angles.info, "units": "radians",
-                       **{k: np.round(getattr(self.angles, k), 7).tolist()
+                       **{k: np.round(getattr(self.angles, k), 6).tolist()
                           for k in ("theta_in", "theta_out", "theta_h", "phi_h")}},
         }
 
     def save(self, path) -> None:
         p = Path(path)
         try:
-            p.write_text(json.dumps(self.to_json(), indent=1) + "\n")
+            p.write_text(dumps_model(self.to_json()))
         except OSError as e:
             raise InputError(f"cannot write model: {e.strerror}", path=p) from None
 
@@ -688,6 +695,17 @@ class ReproductionModel:
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
             raise InputError(f"model is not valid JSON: {e}", path=p) from None
         return cls.from_json(d, p)
+
+
+def dumps_model(doc: dict) -> str:
+    """JSON text of a model document: indented, except the four angle arrays,
+    each on one line (one number per line would triple the file)."""
+    arrays = {k: doc["angles"][k] for k in ("theta_in", "theta_out", "theta_h", "phi_h") if k in doc.get("angles", {})}
+    slim = {**doc, "angles": {**doc["angles"], **{k: f"@@{k}@@" for k in arrays}}}
+    text = json.dumps(slim, indent=1)
+    for k, v in arrays.items():
+        text = text.replace(f'"@@{k}@@"', json.dumps(v, separators=(",", ":")))
+    return text + "\n"
 
 
 def fit_model(samples: SampleSet, angles: AngleSet, clip: float | None = CLIP_LEVEL, n_starts: int = 3,

@@ -99,13 +99,13 @@ def _check_out(path: str) -> Path:
     return p
 
 
-def _write_json(path: Path, data: dict) -> None:
+def _write_json(path: Path, data: dict | str) -> None:
     """Write atomically: a failed or interrupted run leaves any earlier file intact."""
+    text = data if isinstance(data, str) else json.dumps(data, indent=1) + "\n"
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent or ".")
         with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=1)
-            f.write("\n")
+            f.write(text)
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
@@ -161,7 +161,7 @@ def _fit(args) -> int:
     model = R.fit_excluding_outliers(samples, angles, clip, exclude, progress=say, n_starts=_starts(args))
     data = model.to_json()
     data["fit"]["inputs"] = {"ward": str(args.ward), "coverages": str(args.coverages)}
-    _write_json(out, data)
+    _write_json(out, R.dumps_model(data))
     b2 = model.base2
     print(f"excluded: {', '.join(model.fit_info['excluded']) or 'none'} ({model.fit_info['exclusion']})")
     print(f"base 1 = {model.base1_name}; base 2: rho_d={b2.rho_d:.4f} rho_s={b2.rho_s:.4f} alpha_x={b2.alpha_x:.4f} "
