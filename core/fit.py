@@ -197,14 +197,14 @@ class _Data:
     """Per-sample quantities of eq. 4.79 that do not depend on the parameters."""
 
     t2: np.ndarray      # tan^2 theta_h
-    cphi: np.ndarray    # cos phi_h
-    sphi: np.ndarray    # sin phi_h
+    c2p: np.ndarray     # cos 2 phi_h
+    s2p: np.ndarray     # sin 2 phi_h
     g: np.ndarray       # 1 / (4 pi sqrt(cos theta_in cos theta_out))
     W: np.ndarray       # residual multiplier sqrt(v) * w (eq. 4.81-4.82)
     y: np.ndarray       # measured values (clipped if clipping)
 
     def take(self, idx) -> "_Data":
-        return _Data(*(getattr(self, k)[idx] for k in ("t2", "cphi", "sphi", "g", "W", "y")))
+        return _Data(*(getattr(self, k)[idx] for k in ("t2", "c2p", "s2p", "g", "W", "y")))
 
     def __len__(self):
         return self.y.size
@@ -219,7 +219,7 @@ def _make_data(theta_in, theta_out, theta_h, phi_h, values, W, clip) -> _Data:
     y = np.asarray(values, float)
     if clip is not None:
         y = np.minimum(y, clip)
-    return _Data(t2=np.tan(th) ** 2, cphi=np.cos(ph), sphi=np.sin(ph), g=g, W=np.asarray(W, float), y=y)
+    return _Data(t2=np.tan(th) ** 2, c2p=np.cos(2 * ph), s2p=np.sin(2 * ph), g=g, W=np.asarray(W, float), y=y)
 
 
 def _internal(p: WardParams) -> np.ndarray:
@@ -235,42 +235,89 @@ def _model(x: np.ndarray, d: _Data, jac: bool = False):
         df/dln ay = S (2 tan^2 th_h sin^2 a_n / ay^2 - 1),
         df/drot   = S tan^2 th_h sin(2 a_n) (1/ax^2 - 1/ay^2),
 
-    with S the specular term and a_n = phi_h + rot (eq. 4.80)."""
-    rho_d, rho_s, lx, ly, rot = (float(v) for v in x)
-    ix2, iy2 = math.exp(-2 * lx), math.exp(-2 * ly)
-    cr, sr = math.cos(rot), math.sin(rot)
-    c = d.cphi * cr - d.sphi * sr          # cos(phi_h + rot)
-    s = d.sphi * cr + d.cphi * sr          # sin(phi_h + rot)
-    c2 = c * c
-    s2 = 1.0 - c2
-    q = d.t2 * (c2 * ix2 + s2 * iy2)
-    np.minimum(q, _EXP_CUT, out=q)
-    base = d.g * np.exp(-q - lx - ly)
-    S = rho_s * base
-    f = rho_d / np.pi + S
+    with S the specular term and a_n = phi_h + rot (eq. 4.80). With
+    ``h = cos 2 a_n``: ``cos^2 a_n / ax^2 + sin^2 a_n / ay^2 = A + B h``,
+    ``A = (1/ax^2 + 1/ay^2) / 2``, ``B = (1/ax^2 - 1/ay^2) / 2``. The
+    Jacobian is returned as a Fortran-ordered (n, 5) array (contiguous
+    columns: cheaper to fill, and what LAPACK's SVD in the solver wants)."""
+    f, h, base = _model_parts(x, d)
     if not jac:
         return f
-    J = np.empty((f.size, 5))
-    J[:, 0] = 1.0 / np.pi
-    J[:, 1] = base
+    return f, _jacobian(x, d, h, base)
+
+
+def _model_parts(x, d: _Data):
+    """f, cos 2 a_n and the specular basis g exp(...) / (ax ay) (see :func:`_model`)."""
+    rho_d, rho_s, lx, ly, rot = (float(v) for v in x)
+    ix2, iy2 = math.exp(-2 * lx), math.exp(-2 * ly)
+    A, B = 0.5 * (ix2 + iy2), 0.5 * (ix2 - iy2)
+    C, Sn = math.cos(2 * rot), math.sin(2 * rot)
+    h = d.c2p * C
+    h -= d.s2p * Sn                         # cos 2 a_n
+    q = h * B
+    q += A
+    q *= d.t2
+    np.minimum(q, _EXP_CUT, out=q)
+    np.negative(q, out=q)
+    base = np.exp(q, out=q)
+    base *= d.g
+    base *= math.exp(-lx - ly)              # g exp(...) / (ax ay)
+    f = base * rho_s
+    f += rho_d / np.pi
+    return f, h, base
+
+
+def _jacobian(x, d: _Data, h, base):
+    """Fortran-ordered (n, 5) Jacobian of eq. 4.79 from :func:`_model_parts`'s pieces."""
+    rho_d, rho_s, lx, ly, rot = (float(v) for v in x)
+    ix2, iy2 = math.exp(-2 * lx), math.exp(-2 * ly)
+    B = 0.5 * (ix2 - iy2)
+    C, Sn = math.cos(2 * rot), math.sin(2 * rot)
+    JT = np.empty((5, base.size))
+    JT[0] = 1.0 / np.pi
+    JT[1] = base
+    S = base * rho_s
     St2 = S * d.t2
-    J[:, 2] = 2 * ix2 * St2 * c2 - S
-    J[:, 3] = 2 * iy2 * St2 * s2 - S
-    J[:, 4] = 2 * (ix2 - iy2) * St2 * s * c
-    return f, J
+    r2 = JT[2]
+    np.add(h, 1.0, out=r2)                  # 2 cos^2 a_n
+    r2 *= St2
+    r2 *= ix2
+    r2 -= S
+    r3 = JT[3]
+    np.subtract(1.0, h, out=r3)             # 2 sin^2 a_n
+    r3 *= St2
+    r3 *= iy2
+    r3 -= S
+    r4 = JT[4]
+    np.multiply(d.s2p, C, out=r4)
+    r4 += d.c2p * Sn                        # sin 2 a_n
+    r4 *= St2
+    r4 *= 2 * B
+    return JT.T
 
 
 def _residual_fn(d: _Data, clip, clip_model):
+    """Weighted residuals ``W (f - y)`` (eq. 4.81; censored model with ``clip``)
+    and their Jacobian. The solver asks for the Jacobian at the point whose
+    residuals it has just accepted, so the pieces of that evaluation are kept
+    and the exponential is not computed twice."""
+    censor = clip is not None and clip_model
+    last = {}
+
     def fun(x):
-        f = _model(x, d)
-        if clip is not None and clip_model:
-            f = np.minimum(f, clip)
-        return d.W * (f - d.y)
+        f, h, base = _model_parts(x, d)
+        last.update(x=np.array(x, float), f=f, h=h, base=base)
+        fc = np.minimum(f, clip) if censor else f
+        return d.W * (fc - d.y)
 
     def jac(x):
-        f, J = _model(x, d, jac=True)
+        if "x" in last and np.array_equal(last["x"], x):
+            f, h, base = last["f"], last["h"], last["base"]
+        else:
+            f, h, base = _model_parts(x, d)
+        J = _jacobian(x, d, h, base)
         J *= d.W[:, None]
-        if clip is not None and clip_model:
+        if censor:
             J[f >= clip] = 0.0
         return J
 
@@ -331,7 +378,7 @@ def _grid_search(d: _Data, keep=None):
     for rot in np.unique(lobes[:, 2]):
         rows = np.flatnonzero(lobes[:, 2] == rot)
         ax, ay = lobes[rows, 0], lobes[rows, 1]
-        c2 = (d.cphi * math.cos(rot) - d.sphi * math.sin(rot)) ** 2
+        c2 = 0.5 * (1 + d.c2p * math.cos(2 * rot) - d.s2p * math.sin(2 * rot))   # cos^2(phi_h + rot)
         Q = np.multiply.outer(1 / ax ** 2, d.t2 * c2)
         Q += np.multiply.outer(1 / ay ** 2, d.t2 * (1 - c2))
         np.minimum(Q, _EXP_CUT, out=Q)
@@ -408,7 +455,6 @@ def _sandwich(J: np.ndarray, r: np.ndarray, rel_tol: float = 1e-10) -> np.ndarra
     A = Js.T @ Js
     lam, V = np.linalg.eigh(A)
     good = lam > rel_tol * max(lam.max(), 1e-300)
-    good &= np.array([norms[np.argmax(np.abs(V[:, i]))] > 0 for i in range(p)])
     Ainv = (V[:, good] / lam[good]) @ V[:, good].T
     Jr = Js * r[:, None]
     meat = Jr.T @ Jr
@@ -574,6 +620,7 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
     yscale = max(float(np.max(np.abs(d.y))), 1e-12)
 
     def prepare(x):
+        # strictly inside the bounds; rho_s = 0 would leave the lobe without a gradient
         x = np.array(x, float)
         x[0] = max(x[0], 1e-6 * yscale)
         x[1] = max(x[1], 1e-4 * yscale * ALPHA_MIN)
@@ -611,20 +658,15 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
     r = fun(x)
     cov_int = _sandwich(J, r)
     ax, ay = math.exp(x[2]), math.exp(x[3])
-    D = np.diag([1.0, 1.0, ax, ay, 1.0])
-    with np.errstate(invalid="ignore"):
-        cov = D @ np.where(np.isnan(cov_int), 0.0, cov_int) @ D
-    cov[np.isnan(cov_int)] = np.nan
-    for i in range(5):
-        if np.isinf(cov_int[i, i]):
-            cov[i, i] = np.inf
+    dvec = np.array([1.0, 1.0, ax, ay, 1.0])           # d alpha / d ln alpha = alpha
+    cov = cov_int * np.outer(dvec, dvec)                # elementwise: inf and NaN stay where they are
     raw = WardParams(rho_d=float(x[0]), rho_s=float(x[1]), alpha_x=ax, alpha_y=ay, lobe_rotation=float(x[4]))
     params, cov = canonical(raw, cov)
     stderr = {k: float(np.sqrt(cov[i, i])) if cov[i, i] >= 0 else float("inf") for i, k in enumerate(PARAM_NAMES)}
-    at_bound = []
-    if x[0] <= 1e-9 * yscale:
+    at_bound = []       # the solver stays strictly inside: "at" = negligible next to the data
+    if x[0] / np.pi <= 1e-6 * yscale:
         at_bound.append("rho_d")
-    if x[1] <= 1e-9 * yscale * ALPHA_MIN:
+    if x[1] / (4 * np.pi * ax * ay) <= 1e-6 * yscale:
         at_bound.append("rho_s")
     for name, lx in (("alpha_x", math.log(params.alpha_x)), ("alpha_y", math.log(params.alpha_y))):
         if lx <= lb[2] + 1e-6 or lx >= ub[2] - 1e-6:

@@ -309,3 +309,23 @@ def test_bad_fit_input():
         fit_ward(geo.drop(columns="theta_h"), y)
     with pytest.raises(InputError, match="sample weights"):
         fit_ward(geo, y, sample_weight=-np.ones(y.size))
+
+
+def test_sandwich_marks_undetermined_parameters_and_keeps_the_others():
+    from glossrig.core.fit import _sandwich
+
+    rng = np.random.default_rng(0)
+    n = 2000
+    J = rng.standard_normal((n, 5)) * [1.0, 2.0, 0.5, 1.0, 3.0]
+    r = rng.standard_normal(n) * (1 + np.abs(J[:, 0]))           # heteroscedastic
+    full = _sandwich(J, r)
+    # textbook HC1 on the same problem
+    A = np.linalg.inv(J.T @ J)
+    ref = A @ (J.T * r ** 2) @ J @ A * n / (n - 5)
+    np.testing.assert_allclose(full, ref, rtol=1e-8)
+    J0 = J.copy()
+    J0[:, 4] = 0.0                                                  # e.g. the rotation of an isotropic lobe
+    cov = _sandwich(J0, r)
+    assert np.isinf(cov[4, 4]) and np.all(np.isnan(cov[4, :4]))
+    sub = _sandwich(J0[:, :4], r)
+    np.testing.assert_allclose(cov[:4, :4], sub * (n - 4) / (n - 5), rtol=1e-8)

@@ -93,4 +93,10 @@ def run(args) -> int:
         p = f.params
         print(f"{c:9s} rho_d={p.rho_d:.4g} rho_s={p.rho_s:.4g} alpha_x={p.alpha_x:.4g} alpha_y={p.alpha_y:.4g} "
               f"lobe_rotation={p.lobe_rotation:.4f} rad  rms_rel={f.residuals['rms_relative']:.3g}")
+        if not f.converged:
+            print(f"glossrig fit: warning: {c}: the solver stopped at its evaluation limit before converging "
+                  "(see 'converged' and the standard errors in the fit JSON)", file=sys.stderr)
+        if f.at_bound:
+            print(f"glossrig fit: warning: {c}: {', '.join(f.at_bound)} at a bound of Table 4.2; "
+                  "the standard errors assume an interior optimum", file=sys.stderr)
     return 0
