@@ -73,18 +73,25 @@ class SurfaceSamples:
 
 
 def surface_samples(K, dist, size: tuple[int, int], R_world_cam, t_world_cam, R_cyl_world, t_cyl_world,
-                    radius: float, height: float, roi: tuple[int, int, int, int] | None = None) -> SurfaceSamples:
-    """Intersect every pixel's ray with the sample (thesis eq. 4.26-4.30, corrected).
+                    radius: float, height: float, roi: tuple[int, int, int, int] | None = None,
+                    pixels: tuple[np.ndarray, np.ndarray] | None = None) -> SurfaceSamples:
+    """Intersect pixel rays with the sample (thesis eq. 4.26-4.30, corrected).
 
     Poses are OpenCV-style: ``x_cam = R_world_cam @ x_world + t_world_cam`` and
     ``x_world = R_cyl_world @ x_cyl + t_cyl_world`` (world = holder frame).
-    ``roi`` = (x0, y0, x1, y1) limits the pixels considered.
+    By default every pixel centre of the image (or of ``roi`` = (x0, y0, x1, y1))
+    is cast; ``pixels = (u, v)`` casts rays through those (sub-pixel) positions
+    instead, e.g. the centres of 2x2 Bayer blocks. ``u, v`` of the result keep
+    the dtype of the input positions.
     """
-    w, h = size
-    x0, y0, x1, y1 = roi if roi is not None else (0, 0, w, h)
-    vv, uu = np.mgrid[y0:y1, x0:x1]
-    u, v = uu.ravel().astype(np.float64), vv.ravel().astype(np.float64)
-    d_cam = undistorted_rays(K, dist, u, v)
+    if pixels is None:
+        w, h = size
+        x0, y0, x1, y1 = roi if roi is not None else (0, 0, w, h)
+        vv, uu = np.mgrid[y0:y1, x0:x1]
+        u, v = uu.ravel(), vv.ravel()
+    else:
+        u, v = (np.asarray(a).ravel() for a in pixels)
+    d_cam = undistorted_rays(K, dist, u.astype(np.float64), v.astype(np.float64))
     Rwc = np.asarray(R_world_cam, float)
     C_world = -Rwc.T @ np.asarray(t_world_cam, float)
     d_world = d_cam @ Rwc                          # R^T d for each row
@@ -94,11 +101,12 @@ def surface_samples(K, dist, size: tuple[int, int], R_world_cam, t_world_cam, R_
     d_cyl = d_world @ Rcw
     p_cyl, valid = intersect_cylinder(o_cyl, d_cyl, radius, -height / 2, height / 2)
     p_cyl = p_cyl[valid]
-    n_cyl = p_cyl * np.array([1.0, 0.0, 1.0])
-    n_cyl = normalize(n_cyl)
+    n_cyl = normalize(p_cyl * np.array([1.0, 0.0, 1.0]))
     pts = p_cyl @ Rcw.T + tcw
     nrm = n_cyl @ Rcw.T
-    return SurfaceSamples(u=u[valid].astype(np.int32), v=v[valid].astype(np.int32), points=pts, normals=nrm,
+    if pixels is None:
+        u, v = u.astype(np.int32), v.astype(np.int32)
+    return SurfaceSamples(u=u[valid], v=v[valid], points=pts, normals=nrm,
                           camera_centre=C_world, axis=Rcw @ np.array([0.0, 1.0, 0.0]))
 
 

@@ -114,3 +114,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     return args.func(args)
+
+
+def sub_lamps(sub) -> None:
+    p = sub.add_parser("lamps", help="lamp positions from a capture of a specular sample",
+                       description="Lamp positions (thesis 4.3.4): for every sequenced LED, the mirror rays of the "
+                                   "50 brightest samples of a highly specular sample (the transparency sheet), "
+                                   "intersected with the LEDs' measured distance from the cylinder axis.")
+    p.add_argument("specular_dir", help="capture folder of the specular sample")
+    p.add_argument("--camera", required=True, help="camera.json from glossrig calibrate camera")
+    p.add_argument("--out", required=True, help="lamps.json to write")
+    p.add_argument("--no-progress", action="store_true")
+
+    def run(args) -> int:
+        from glossrig.core.intrinsics import load_camera
+        from glossrig.core.lamps import calibrate_lamps, save_lamps
+
+        d = calibrate_lamps(args.specular_dir, load_camera(args.camera), progress=not args.no_progress)
+        save_lamps(d, args.out)
+        for k, v in d["lamps_mm"].items():
+            print(f"LED {k}: {[round(x, 2) for x in v]} mm (spread {d['spread_mm'][k]:.2f} mm)")
+        print(f"lamp positions written to {args.out}")
+        return 0
+
+    p.set_defaults(func=run)
