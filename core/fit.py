@@ -9,11 +9,18 @@ with ``w_i`` the peak-emphasising weight of eq. 4.82 (see :func:`peak_weight`)
 and ``v_i`` the samples table's own ``weight`` column (inverse-variance-like,
 1 when unknown), within the bounds of Table 4.2: ``rho_d, rho_s >= 0``,
 ``0 < alpha <= 0.5``. ``alpha`` is kept above ``ALPHA_MIN = 1e-4`` (Table 4.2
-says 0, where the model is undefined; 1e-4 rad is far below any lobe the rig can
-resolve).
+says 0, where the model is undefined; a lobe of slope width 1e-4 is far below
+anything the rig can resolve). Table 4.2 bounds the rotation by 0..360 (degrees;
+Table 6.3: 0..2 pi); it is reported in radians in [0, pi), which loses nothing
+(eq. 4.79 is pi-periodic in it).
 
 Departures from the thesis, and why:
 
+* **Weight (eq. 4.82).** Its ``theta_d, phi_d`` are never defined in the thesis;
+  read as the difference of the incident and outgoing angles the weight does
+  what the text says (highest at the mirror configuration, reciprocal), read as
+  Rusinkiewicz's difference angles it does not (:func:`peak_weight`). The
+  former is the default, the latter available as ``weighting="literal"``.
 * **Optimiser.** The thesis ran Matlab's ``fmincon`` from random starts and had
   to hand-pick the lobe rotation's start (section 6.2), because
   ``(alpha_x, alpha_y, rot)`` and ``(alpha_y, alpha_x, rot + pi/2)`` are the
@@ -25,8 +32,10 @@ Departures from the thesis, and why:
   1973). The best few distinct grid lobes are refined with a bounded
   trust-region least-squares solver (SciPy ``least_squares``, method ``trf``)
   using the analytic Jacobian, in ``(rho_d, rho_s, ln alpha_x, ln alpha_y, rot)``
-  with ``rot`` unbounded so that no start is trapped at the symmetry line; the
-  best is polished on all samples and reported in the canonical form (below).
+  with ``rot`` unbounded so that no start is trapped at the symmetry line, on a
+  subset of the samples; the best is polished on all samples (Levenberg-
+  Marquardt on the normal equations, :func:`_polish_lm`) and reported in the
+  canonical form (below).
 * **Canonical form.** ``alpha_x >= alpha_y`` and ``lobe_rotation`` in [0, pi):
   the x axis of the lobe is its wider axis. Most of Table 9.1 is already in
   this form; e.g. sample 0/6 (``alpha_x < alpha_y``, 2.52 rad) becomes
@@ -56,7 +65,7 @@ import math
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Mapping
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -638,18 +647,26 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
     history = []
     best = None
     for k, x0 in enumerate(cand):
+        t1 = time.perf_counter()
         r = solve(fun, jac, prepare(x0), len(sub))
         history.append({"stage": "start", "start": [float(v) for v in x0], "x": [float(v) for v in r.x],
-                        "cost": float(r.cost), "nfev": int(r.nfev), "status": int(r.status), "rows": len(sub)})
+                        "cost": float(r.cost), "nfev": int(r.nfev), "status": int(r.status), "rows": len(sub),
+                        "time_s": time.perf_counter() - t1})
         say(f"{channel}: start {k + 1}/{len(cand)} cost {r.cost:.6g} ({r.nfev} evaluations)")
         if best is None or r.cost < best.cost:
             best = r
     if sub is not d:
         fun, jac = _residual_fn(d, clip, clip_model)
         x0 = best.x
-        best = solve(fun, jac, x0, n)
-        history.append({"stage": "polish", "start": [float(v) for v in x0], "x": [float(v) for v in best.x],
-                        "cost": float(best.cost), "nfev": int(best.nfev), "status": int(best.status), "rows": n})
+        t1 = time.perf_counter()
+        best = _polish_lm(fun, jac, x0, lb, ub, n, max_nfev)
+        method = "lm"
+        if best.status <= 0 or _near_bound(best.x, lb, ub):
+            best = solve(fun, jac, best.x, n)
+            method = "trf"
+        history.append({"stage": "polish", "method": method, "start": [float(v) for v in x0],
+                        "x": [float(v) for v in best.x], "cost": float(best.cost), "nfev": int(best.nfev),
+                        "status": int(best.status), "rows": n, "time_s": time.perf_counter() - t1})
         say(f"{channel}: polished on all {n} samples, cost {best.cost:.6g} ({best.nfev} evaluations)")
     x = best.x
 
@@ -678,6 +695,64 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
                    at_bound=at_bound, n_samples=n, weighting=weighting, clip=clip, clip_model=clip_model,
                    cost=float(best.cost), converged=bool(best.status > 0 or best.status == -2), n_starts=len(cand),
                    time_s=time.perf_counter() - t0, history=history)
+
+
+def _near_bound(x, lb, ub, tol=1e-6):
+    return bool(np.any((x - lb < tol * np.maximum(1.0, np.abs(lb))) | (ub - x < tol * np.maximum(1.0, np.abs(ub)))))
+
+
+def _polish_lm(fun, jac, x0, lb, ub, n_rows, max_nfev):
+    """Levenberg-Marquardt (Marquardt 1963) on the 5 x 5 normal equations, for the
+    final pass over all samples from the subset's optimum, which is already
+    close: each step costs one residual and one Jacobian evaluation plus
+    ``J'J`` (one pass), against the several passes and the tall SVD of a
+    trust-region iteration (measured: ~5x faster on 5 million samples). Steps
+    are clipped into the bounds; a result on a bound (or a failure) is handed
+    back to the bounded trust-region solver by the caller. Stops when a step
+    lowers chi-square by less than 0.02 (see :class:`_Stall`)."""
+    from scipy.linalg import LinAlgError, cho_factor, cho_solve
+    from scipy.optimize import OptimizeResult
+
+    x = np.array(x0, float)
+    r = fun(x)
+    cost = 0.5 * float(r @ r)
+    nfev, lam, status = 1, 1e-4, 0
+    while nfev < max_nfev:
+        J = jac(x)
+        H = J.T @ J
+        g = J.T @ r
+        D = np.sqrt(np.diag(H))
+        D[D == 0] = 1.0
+        Hs, gs = H / np.outer(D, D), g / D
+        improved = False
+        while nfev < max_nfev:
+            try:
+                step = -cho_solve(cho_factor(Hs + lam * np.eye(5)), gs) / D
+            except LinAlgError:
+                lam *= 10
+                continue
+            xn = np.clip(x + step, lb, ub)
+            rn = fun(xn)
+            nfev += 1
+            cn = 0.5 * float(rn @ rn)
+            if cn < cost:
+                gain = cost - cn
+                x, r, cost = xn, rn, cn
+                lam = max(lam / 10, 1e-12)
+                improved = True
+                break
+            lam *= 10
+            if lam > 1e10:
+                break
+        if not improved:
+            status = 1 if lam > 1e10 else 0      # no downhill step left: at the optimum
+            break
+        if gain <= 0.01 * cost / max(n_rows, 1):
+            status = 1
+            break
+    if status == 1:
+        fun(x)      # leave the residual function's cache at the returned point
+    return OptimizeResult(x=x, cost=cost, nfev=nfev, status=status)
 
 
 @functools.wraps(_fit_ward)

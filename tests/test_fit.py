@@ -128,6 +128,22 @@ def test_swapped_axes_resolved_to_canonical_form_from_any_start():
         assert getattr(auto, k) == pytest.approx(getattr(ref, k), rel=1e-4, abs=1e-6)
 
 
+def test_polish_on_all_samples_matches_the_trust_region_solver_on_all_samples():
+    """The default fit refines its starts on a 50k-row subset and polishes on all
+    rows by Levenberg-Marquardt; refining everything on all rows with the
+    bounded trust-region solver must give the same optimum."""
+    geo = geometry(0.04)
+    assert len(geo) > 50_000
+    y = noisy(geo, material("sample_6_6"))
+    fast = fit_ward(geo, y)
+    ref = fit_ward(geo, y, refine_samples=10**9)
+    polish = [h for h in fast.history if h["stage"] == "polish"]
+    assert len(polish) == 1 and polish[0]["method"] == "lm" and polish[0]["rows"] == len(geo)
+    assert fast.cost == pytest.approx(ref.cost, rel=1e-9)
+    for k in PARAM_NAMES:
+        assert abs(getattr(fast.params, k) - getattr(ref.params, k)) < 1e-3 * ref.stderr[k]
+
+
 def test_standard_errors_are_plausible():
     """The true value lies within 3 sigma in most noise seeds, and sigma scales with the noise."""
     geo = geometry(0.04)
