@@ -83,6 +83,7 @@ def sub_geometry(sub) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
 
     def run(args) -> int:
+        import cv2
         import numpy as np
 
         from glossrig.core.poses import calibrate_capture, save_geometry
@@ -92,7 +93,7 @@ def sub_geometry(sub) -> None:
         save_geometry(res, args.out, overwrite=args.force)
         h, c = res["holder"], res["cylinder_in_holder"]
         cam = res["camera_in_holder"]["centre_mm"]
-        ang = np.degrees(np.linalg.norm(__import__("cv2").Rodrigues(c["R"])[0]))
+        ang = np.degrees(np.linalg.norm(cv2.Rodrigues(c["R"])[0]))
         print(f"{res['file']}: holder t = {np.round(h['t_mm'], 3).tolist()} mm (camera frame), "
               f"corner reprojection RMS {h['reprojection_rms_px']:.3f} px")
         print(f"cylinder in holder: t = {np.round(c['t_mm'], 3).tolist()} mm, rotation {ang:.3f} deg")
