@@ -671,8 +671,8 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
     x = best.x
 
     # Uncertainty (sandwich) in the solver's parameters -> reported parameters.
-    J = jac(x)
     r = fun(x)
+    J = jac(x)          # reuses the exponentials of fun(x)
     cov_int = _sandwich(J, r)
     ax, ay = math.exp(x[2]), math.exp(x[3])
     dvec = np.array([1.0, 1.0, ax, ay, 1.0])           # d alpha / d ln alpha = alpha
@@ -709,7 +709,10 @@ def _polish_lm(fun, jac, x0, lb, ub, n_rows, max_nfev):
     trust-region iteration (measured: ~5x faster on 5 million samples). Steps
     are clipped into the bounds; a result on a bound (or a failure) is handed
     back to the bounded trust-region solver by the caller. Stops when a step
-    lowers chi-square by less than 0.02 (see :class:`_Stall`)."""
+    lowers chi-square by less than 0.02 (see :class:`_Stall`), or when the
+    quadratic model predicts less than that: with millions of rows the
+    rounding error of the cost sum is of that order, and evaluating such steps
+    only collects rejections."""
     from scipy.linalg import LinAlgError, cho_factor, cho_solve
     from scipy.optimize import OptimizeResult
 
@@ -724,14 +727,21 @@ def _polish_lm(fun, jac, x0, lb, ub, n_rows, max_nfev):
         D = np.sqrt(np.diag(H))
         D[D == 0] = 1.0
         Hs, gs = H / np.outer(D, D), g / D
-        improved = False
+        improved = done = False
         while nfev < max_nfev:
             try:
                 step = -cho_solve(cho_factor(Hs + lam * np.eye(5)), gs) / D
-            except LinAlgError:
+            except (LinAlgError, ValueError):
                 lam *= 10
+                if lam > 1e10:
+                    break
                 continue
             xn = np.clip(x + step, lb, ub)
+            st = xn - x
+            predicted = -float(g @ st) - 0.5 * float(st @ H @ st)
+            if predicted <= 0.01 * cost / max(n_rows, 1):
+                done = True                 # the quadratic model sees nothing left to gain
+                break
             rn = fun(xn)
             nfev += 1
             cn = 0.5 * float(rn @ rn)
@@ -743,15 +753,14 @@ def _polish_lm(fun, jac, x0, lb, ub, n_rows, max_nfev):
                 break
             lam *= 10
             if lam > 1e10:
+                done = True                 # no downhill step at any damping: at the optimum
                 break
         if not improved:
-            status = 1 if lam > 1e10 else 0      # no downhill step left: at the optimum
+            status = 1 if done else 0
             break
         if gain <= 0.01 * cost / max(n_rows, 1):
             status = 1
             break
-    if status == 1:
-        fun(x)      # leave the residual function's cache at the returned point
     return OptimizeResult(x=x, cost=cost, nfev=nfev, status=status)
 
 

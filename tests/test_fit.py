@@ -141,7 +141,7 @@ def test_polish_on_all_samples_matches_the_trust_region_solver_on_all_samples():
     assert len(polish) == 1 and polish[0]["method"] == "lm" and polish[0]["rows"] == len(geo)
     assert fast.cost == pytest.approx(ref.cost, rel=1e-9)
     for k in PARAM_NAMES:
-        assert abs(getattr(fast.params, k) - getattr(ref.params, k)) < 1e-3 * ref.stderr[k]
+        assert abs(getattr(fast.params, k) - getattr(ref.params, k)) < 0.01 * ref.stderr[k]
 
 
 def test_standard_errors_are_plausible():
