@@ -126,18 +126,35 @@ def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
     else:
         raise InputError(f"HDR estimator must be 'ml' or 'thesis', got {estimator!r}")
     norm = normalise_by_patch(rate, geom.patch_mask, cfa, variance=var, name=str(man.folder / seq[0].file))
-    rate_n, var_n = norm.image, norm.variance
-    # 2x2 Bayer blocks -> R, G (mean of the two greens), B
+    return block_values(norm.image, norm.variance, cfa, geom.block_index)
+
+
+def block_values(rate: np.ndarray, var: np.ndarray, cfa, block_index) -> tuple[np.ndarray, np.ndarray]:
+    """R, G, B values (and variances) at the centres of 2x2 Bayer blocks.
+
+    Each CFA position (di, dj) forms a half-resolution plane whose pixels sit
+    (0.5 - di, 0.5 - dj) pixels away from the block centre; reading every plane
+    there by bilinear interpolation puts all three channels at the block centre's
+    geometry. Taking the raw R and B pixels instead would misregister them by
+    half a pixel, which inside a narrow lobe costs several per cent (measured:
+    4.6 % / 6.7 % median error for R / B against 1.4 % for G at quarter scale).
+    """
+    from scipy.ndimage import map_coordinates
+
     cid = np.asarray(cfa)
-    bi, bj = geom.block_index
+    bi, bj = block_index
     vals = np.zeros((len(bi), 3))
     vvar = np.zeros((len(bi), 3))
     cnt = np.zeros(3)
     for di in range(2):
         for dj in range(2):
             c = int(cid[di, dj])
-            vals[:, c] += rate_n[2 * bi + di, 2 * bj + dj]
-            vvar[:, c] += var_n[2 * bi + di, 2 * bj + dj]
+            plane = rate[di::2, dj::2]
+            vplane = var[di::2, dj::2]
+            coords = np.stack([bi + (0.5 - di) / 2, bj + (0.5 - dj) / 2])
+            vals[:, c] += map_coordinates(plane, coords, order=1, mode="nearest")
+            # bilinear weights at offsets of a quarter plane pixel: sum of squares 0.390625
+            vvar[:, c] += map_coordinates(vplane, coords, order=1, mode="nearest") * 0.390625
             cnt[c] += 1
     return vals / cnt, vvar / cnt ** 2
 

@@ -37,7 +37,7 @@ def simulate(out: Path, material: str, scale: float, seed: int, rotations: str, 
             import shutil
 
             shutil.rmtree(out)
-        glossrig("simulate", "--rig", RIG, "--material", material, "--leds", "middle", "--rotations", rotations,
+        glossrig("simulate", "--rig", RIG, "--material", material, "--leds", "middle", f"--rotations={rotations}",
                  "--repeats", repeats, "--scale", scale, "--seed", seed, "--no-progress", "--out", out, *extra)
     return out
 
@@ -75,6 +75,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--fit", action="store_true")
+    ap.add_argument("--lamp-rotations", default="0", help="rotations of the specular (lamp) capture")
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -94,7 +95,7 @@ def main(argv=None) -> dict:
                             "cx_err_px": c["cx"] - K[0, 2], "cy_err_px": c["cy"] - K[1, 2],
                             "rms_px": c.get("reprojection_rms_px")}
 
-    spec = simulate(out / "specular", "transparency_sheet", a.scale, a.seed + 1, a.rotations, a.repeats)
+    spec = simulate(out / "specular", "transparency_sheet", a.scale, a.seed + 1, a.lamp_rotations, a.repeats)
     lamps = out / "lamps.json"
     if not lamps.exists():
         glossrig("calibrate", "lamps", spec, "--camera", cam, "--out", lamps)
@@ -107,14 +108,18 @@ def main(argv=None) -> dict:
     for k, m in enumerate(a.materials.split(",")):
         cap = simulate(out / m, m, a.scale, a.seed + 10 + k, a.rotations, a.repeats)
         sp = out / f"{m}.parquet"
-        glossrig("extract", cap, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", sp, "--no-progress")
+        if not sp.exists():
+                glossrig("extract", cap, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", sp,
+                     "--no-progress")
         entry = brdf_errors(sp, cap / "truth.json")
         if a.fit:
             fj = out / f"{m}.fit.json"
-            glossrig("fit", sp, "--out", fj)
+            if not fj.exists():
+                glossrig("fit", sp, "--out", fj)
             entry["fit"] = json.loads(fj.read_text())["luminance"]
             entry["truth"] = json.loads((cap / "truth.json").read_text())["material"]["ward"]
         report["materials"][m] = entry
+        (out / "report.json").write_text(json.dumps(report, indent=1))     # progress survives a stop
     (out / "report.json").write_text(json.dumps(report, indent=1))
     print(json.dumps(report, indent=1))
     return report

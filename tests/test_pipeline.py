@@ -1,0 +1,132 @@
+"""The core pipeline on twin captures: calibrate camera and lamps, extract, and recover
+the true BRDF (issue 3). One LED keeps it fast; validation/pipeline_study.py and
+validation/recovery_study.py run the full rig."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from glossrig.core.errors import InputError
+
+from conftest import RIG
+
+pytestmark = pytest.mark.mitsuba
+SCALE = "0.25"
+
+
+def glossrig(*args, check=True):
+    r = subprocess.run([sys.executable, "-m", "glossrig.cli.main", *map(str, args)], capture_output=True, text=True)
+    if check and r.returncode != 0:
+        raise AssertionError(f"glossrig {args[0]} failed:\n{r.stderr[-3000:]}")
+    return r
+
+
+def simulate(out, material, seed, leds="9", rotations="0"):
+    glossrig("simulate", "--rig", RIG, "--material", material, "--leds", leds, "--rotations", rotations,
+             "--repeats", 1, "--scale", SCALE, "--seed", seed, "--no-progress", "--out", out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def rigdata(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pipeline")
+    glossrig("simulate", "--rig", RIG, "--target", "checkerboard", "--views", 8, "--scale", SCALE, "--seed", 4,
+             "--no-progress", "--out", d / "checker")
+    glossrig("calibrate", "camera", d / "checker", "--out", d / "camera.json")
+    simulate(d / "specular", "transparency_sheet", 5, leds="9")
+    glossrig("calibrate", "lamps", d / "specular", "--camera", d / "camera.json", "--out", d / "lamps.json",
+             "--no-progress")
+    simulate(d / "reference", "lambert:0.8", 6, leds="9")
+    simulate(d / "sample", "ward:rho_d=0.06,rho_s=0.05,alpha_x=0.09,alpha_y=0.05,lobe_rotation=0.6", 7, leds="9")
+    return d
+
+
+def test_lamp_positions_within_2_mm(rigdata):
+    lamps = json.loads((rigdata / "lamps.json").read_text())["lamps_mm"]
+    truth = json.loads((rigdata / "specular" / "truth.json").read_text())["led_positions_mm"]
+    err = {k: float(np.linalg.norm(np.subtract(v, truth[k]))) for k, v in lamps.items()}
+    assert set(err) == {"9"}
+    assert max(err.values()) < 2.0, err
+
+
+def test_extracted_brdf_matches_truth(rigdata):
+    from glossrig.core.samples import COLUMNS, read_samples
+    from glossrig.core.ward import WardParams, ward_from_angles
+
+    out = rigdata / "samples.parquet"
+    glossrig("extract", rigdata / "sample", "--reference", rigdata / "reference", "--camera", rigdata / "camera.json",
+             "--lamps", rigdata / "lamps.json", "--out", out, "--plots", rigdata / "plots", "--no-progress")
+    df = read_samples(out)
+    assert list(df.columns[:len(COLUMNS)]) == list(COLUMNS) or set(COLUMNS) <= set(df.columns)
+    assert set(df.led.unique()) == {9}
+    w = WardParams(**json.loads((rigdata / "sample" / "truth.json").read_text())["material"]["ward"])
+    f = ward_from_angles(df.theta_in, df.theta_out, df.theta_h, df.phi_h, w)
+    # Away from the lobe the extraction is limited by noise: well below 2 %.
+    f = np.asarray(f)
+    dif = f < 0.03
+    for c in "rgb":
+        rel = (df[c][dif] / f[dif] - 1).to_numpy()
+        assert np.median(np.abs(rel)) < 0.02, (c, np.median(np.abs(rel)))
+    # In the lobe (f > 0.05): the issue's target, median relative error below 3 %, unbiased,
+    # no trend against theta_h.
+    sel = f > 0.05
+    assert sel.sum() > 1000
+    errs = {}
+    for c in ("r", "g", "b", "lum"):
+        y = (0.2126 * df.r + 0.7152 * df.g + 0.0722 * df.b) if c == "lum" else df[c]
+        rel = (y[sel] / f[sel] - 1).to_numpy()
+        errs[c] = (float(np.median(np.abs(rel))), float(np.median(rel)))
+    assert errs["lum"][0] < 0.03, errs                                  # the issue's target
+    assert all(errs[c][0] < 0.05 and abs(errs[c][1]) < 0.02 for c in "rgb"), errs   # R, B: fewer photons
+    th = df.theta_h[sel].to_numpy()
+    rel = (df.g[sel] / f[sel] - 1).to_numpy()
+    q = np.quantile(th, [0, 1 / 3, 2 / 3, 1])
+    meds = [np.median(rel[(th >= a) & (th <= b)]) for a, b in zip(q, q[1:])]
+    assert np.ptp(meds) < 0.02, meds
+    for name in ("coverage.png", "hdr_r+0_led09.png", "hdr_r+0_led09.exr", "sample_mask_r+0.png"):
+        assert (rigdata / "plots" / name).exists(), name
+
+
+def test_missing_exposure_and_corrupt_file_name_the_file(rigdata, tmp_path):
+    bad = tmp_path / "sample"
+    shutil.copytree(rigdata / "sample", bad)
+    man = json.loads((bad / "capture.json").read_text())
+    victim = [im for im in man["images"] if im["role"] == "sequence"][7]["file"]
+    (bad / victim).unlink()
+    r = glossrig("extract", bad, "--reference", rigdata / "reference", "--camera", rigdata / "camera.json",
+                 "--lamps", rigdata / "lamps.json", "--out", tmp_path / "x.parquet", "--no-progress", check=False)
+    assert r.returncode == 2 and victim in r.stderr, r.stderr[-500:]
+    shutil.copy(rigdata / "sample" / victim, bad / victim)
+    data = (bad / victim).read_bytes()
+    (bad / victim).write_bytes(data[: len(data) // 3])
+    r = glossrig("extract", bad, "--reference", rigdata / "reference", "--camera", rigdata / "camera.json",
+                 "--lamps", rigdata / "lamps.json", "--out", tmp_path / "x.parquet", "--no-progress", check=False)
+    assert r.returncode == 2 and victim in r.stderr, r.stderr[-500:]
+    assert not (tmp_path / "x.parquet").exists()
+
+
+def test_reference_from_another_rig_or_rotation_set(rigdata, tmp_path):
+    from glossrig.core.extract import check_compatible
+
+    other = tmp_path / "ref_other_rig"
+    shutil.copytree(rigdata / "reference", other)
+    rig_text = RIG.read_text().replace("distance_to_axis = 500.0", "distance_to_axis = 520.0")
+    (other / "other_rig.toml").write_text(rig_text.replace('name = "thesis"', 'name = "other"'))
+    man = json.loads((other / "capture.json").read_text())
+    man["rig"] = "other_rig.toml"
+    (other / "capture.json").write_text(json.dumps(man))
+    with pytest.raises(InputError, match="another rig"):
+        check_compatible(rigdata / "sample", other)
+    rot = tmp_path / "ref_rot"
+    shutil.copytree(rigdata / "reference", rot)
+    man = json.loads((rot / "capture.json").read_text())
+    for im in man["images"]:
+        im["rotation"] = 45.0
+    (rot / "capture.json").write_text(json.dumps(man))
+    with pytest.raises(InputError, match="another rotation or LED set"):
+        check_compatible(rigdata / "sample", rot)
