@@ -31,10 +31,16 @@ def holder_marker_corners(rig, inner: bool = False) -> np.ndarray:
                      [-w / 2, yc - hh / 2, z], [w / 2, yc - hh / 2, z]], dtype=np.float64)
 
 
+def cylinder_marker_radius(rig) -> float:
+    """Radius of the printed marker surface: the sample-wrapped cylinder plus the marker
+    paper (thesis 4.3.2: r^c includes the paper's thickness)."""
+    return float(rig.raw["cylinder"]["radius_with_sample"]) + float(rig.section("cylinder_markers").get("paper_thickness", 0.0))
+
+
 def cylinder_marker_angles(rig) -> np.ndarray:
     """Angles (rad, about +y from +z towards +x) of the 2*count vertical marker edges."""
     cm = rig.section("cylinder_markers")
-    r = rig.raw["cylinder"]["radius_with_sample"]
+    r = cylinder_marker_radius(rig)
     n = 2 * int(cm["count"])
     return (np.arange(1, n + 1) - (n + 1) / 2) * cm["side"] / r
 
@@ -44,7 +50,7 @@ def cylinder_marker_corners(rig) -> np.ndarray:
     first the upper row (y = h_u), then the lower row (y = h_l), each ordered by
     angle. Grouped per marker: corners [2k, 2k+1] of each row bound marker k."""
     cm = rig.section("cylinder_markers")
-    r = rig.raw["cylinder"]["radius_with_sample"]
+    r = cylinder_marker_radius(rig)
     a = cylinder_marker_angles(rig)
     hu = cm["centre_height"] + cm["side"] / 2
     hl = cm["centre_height"] - cm["side"] / 2

@@ -50,7 +50,7 @@ from scipy.optimize import least_squares
 from scipy.special import ndtr
 
 from .errors import InputError
-from .markers import cylinder_marker_angles, cylinder_marker_corners, holder_marker_corners
+from .markers import cylinder_marker_angles, cylinder_marker_corners, holder_marker_corners, cylinder_marker_radius
 from .marker_detect import SIDES, MarkerDetection, detect_markers, refine_cylinder_arcs
 
 #: Smallest blur (px) of the edge model (keeps the profile differentiable).
@@ -109,7 +109,7 @@ def cylinder_edges(rig, segments: int = 32) -> list[np.ndarray]:
     (``segments`` chords each; sag < 1e-3 mm), left and right straight lines
     along its axis (thesis eq. 4.22-4.24 geometry)."""
     cm = rig.section("cylinder_markers")
-    r = float(rig.cylinder_radius)
+    r = cylinder_marker_radius(rig)
     a = cylinder_marker_angles(rig)
     hu = cm["centre_height"] + cm["side"] / 2
     hl = cm["centre_height"] - cm["side"] / 2

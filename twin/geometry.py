@@ -9,13 +9,14 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from glossrig.core.markers import cylinder_marker_angles, holder_marker_corners
+from glossrig.core.markers import cylinder_marker_angles, cylinder_marker_radius, holder_marker_corners
 
 
-def holder_box(rig) -> trimesh.Trimesh:
+def holder_box(rig, recess: float = 0.04) -> trimesh.Trimesh:
+    """The holder; its front face ``recess`` mm behind the marker plane z = depth / 2."""
     h = rig.section("holder")
-    box = trimesh.creation.box(extents=(h["width"], h["height"], h["depth"]))
-    box.apply_translation((0.0, h["top"] - h["height"] / 2, 0.0))
+    box = trimesh.creation.box(extents=(h["width"], h["height"], h["depth"] - recess))
+    box.apply_translation((0.0, h["top"] - h["height"] / 2, -recess / 2))
     return box
 
 
@@ -26,11 +27,12 @@ def _quad(corners: np.ndarray) -> trimesh.Trimesh:
 
 
 def holder_marker_meshes(rig, lift: float = 0.02) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
-    """Red square (outer) and white patch (inner, ``lift`` mm in front of it)."""
+    """Red square (outer, ``lift`` mm behind the marker plane) and white patch (inner, on
+    the marker plane of :func:`holder_marker_corners`, which the pipeline assumes); the
+    holder's front face is recessed by ``2 * lift`` (:func:`holder_box`)."""
     outer = holder_marker_corners(rig).copy()
     inner = holder_marker_corners(rig, inner=True).copy()
-    outer[:, 2] += lift
-    inner[:, 2] += 2 * lift
+    outer[:, 2] -= lift
     return _quad(outer), _quad(inner)
 
 
@@ -51,14 +53,15 @@ def curved_patch(radius: float, a0: float, a1: float, y0: float, y1: float, segm
     return trimesh.Trimesh(vertices=v, faces=np.array(f), process=False)
 
 
-def cylinder_marker_meshes(rig, radius: float, lift: float = 0.02) -> list[trimesh.Trimesh]:
+def cylinder_marker_meshes(rig) -> list[trimesh.Trimesh]:
     cm = rig.section("cylinder_markers")
     a = cylinder_marker_angles(rig)
     y0 = cm["centre_height"] - cm["side"] / 2
     y1 = cm["centre_height"] + cm["side"] / 2
-    # The edges' angles are defined on the nominal radius; the patches sit on the
-    # (possibly perturbed) paper surface just above it.
-    return [curved_patch(radius + lift, a[2 * k], a[2 * k + 1], y0, y1) for k in range(int(cm["count"]))]
+    # The red squares lie exactly on the marker radius the pipeline assumes; the white
+    # band is drawn just below it (twin.scene).
+    r = cylinder_marker_radius(rig)
+    return [curved_patch(r, a[2 * k], a[2 * k + 1], y0, y1) for k in range(int(cm["count"]))]
 
 
 def led_housing(position, radius: float = 4.0, length: float = 10.0, gap: float = 0.5) -> trimesh.Trimesh:

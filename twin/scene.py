@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from glossrig.core.markers import cylinder_marker_radius
 from glossrig.core.materials import Material
 
 from . import geometry
@@ -117,7 +118,8 @@ def sample_scene(rig, material: Material, spec: SceneSpec, workdir: Path, aov: b
         "sample": {"type": "cylinder", "to_world": _axis_to_world(r, -hs, hs), "bsdf": material_bsdf(material)},
         "paper_low": {"type": "cylinder", "to_world": _axis_to_world(r, cyl["bottom"], -hs), "bsdf": _diffuse(BLACK_PAPER)},
         "paper_mid": {"type": "cylinder", "to_world": _axis_to_world(r, hs, cm["band_bottom"]), "bsdf": _diffuse(BLACK_PAPER)},
-        "band": {"type": "cylinder", "to_world": _axis_to_world(r, cm["band_bottom"], cm["band_top"]),
+        "band": {"type": "cylinder", "to_world": _axis_to_world(cylinder_marker_radius(rig) - 0.02, cm["band_bottom"],
+                                                                 cm["band_top"]),
                  "bsdf": _diffuse(PAPER_WHITE)},
         "paper_top": {"type": "cylinder", "to_world": _axis_to_world(r, cm["band_top"], cyl["top"]), "bsdf": _diffuse(BLACK_PAPER)},
         "holder": {"type": "ply", "filename": _ply(geometry.holder_box(rig), workdir, "holder"), "bsdf": _diffuse(BLACK_PLASTIC)},
@@ -125,7 +127,7 @@ def sample_scene(rig, material: Material, spec: SceneSpec, workdir: Path, aov: b
         "holder_white": {"type": "ply", "filename": _ply(white, workdir, "holder_white"), "bsdf": _diffuse(PAPER_WHITE)},
         "led": {"type": "point", "position": [0.0, 0.0, 0.3], "intensity": {"type": "rgb", "value": list(LED_RGB)}},
     }
-    for k, m in enumerate(geometry.cylinder_marker_meshes(rig, r)):
+    for k, m in enumerate(geometry.cylinder_marker_meshes(rig)):
         d[f"marker{k}"] = {"type": "ply", "filename": _ply(m, workdir, f"marker{k}"), "bsdf": _diffuse(MARKER_RED)}
     housing_r = float(rig.section("leds").get("housing_radius", 4.0))
     for led_id, pos in spec.led_positions.items():
