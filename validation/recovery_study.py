@@ -59,15 +59,23 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=0.25)
     ap.add_argument("--materials", default=",".join(materials()))
     ap.add_argument("--out", default=str(HERE / "recovery.md"))
+    ap.add_argument("--report-only", action="store_true",
+                    help="only write the table from WORK/report.json (e.g. of an interrupted run)")
     a = ap.parse_args()
-    rep = pipeline_study.main(["--out", a.work, "--scale", str(a.scale), "--materials", a.materials,
-                               "--rotations=-45,0,45,90", "--fit"])
+    if a.report_only:
+        rep = json.loads((Path(a.work) / "report.json").read_text())
+    else:
+        rep = pipeline_study.main(["--out", a.work, "--scale", str(a.scale), "--materials", a.materials,
+                                   "--rotations=-45,0,45,90", "--fit"])
+    done = sum("fit" in e for e in rep["materials"].values())
     text = ["# Ground-truth recovery on the twin (issue 4)", "",
             f"Command: `python validation/recovery_study.py --work {a.work} --scale {a.scale}` "
             "(middle-row LEDs, rotations -45/0/45/90, one repeat, thesis LED fluctuations and sensor noise, "
             "reference lambert:0.8). Luminance fit; errors are fitted/true - 1, lobe rotation modulo pi.", "",
             f"Calibration: intrinsics {json.dumps({k: round(v, 5) if isinstance(v, float) else v for k, v in rep['intrinsics'].items()})}; "
             f"lamp errors (mm) {json.dumps({k: round(v, 2) for k, v in rep['lamp_error_mm'].items()})}.", "",
+            f"Materials finished: {done} of {len(materials())} in ward_params.csv "
+            "(re-running the command resumes an interrupted study).", "",
             table(rep), ""]
     Path(a.out).write_text("\n".join(text))
     print("\n".join(text))
