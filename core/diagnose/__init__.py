@@ -1,0 +1,86 @@
+"""Find what the model gets wrong in a measured capture and name the cause (issue 7).
+
+:func:`diagnose` fits the forward model to the capture (geometry from the
+calibrations, the material from a Ward fit, the sensor from the raws' own
+statistics), computes residuals in BRDF space and in frame/pixel space, fits
+each named cause of :mod:`.catalogue` and :mod:`.frames` on training folds,
+scores it on held-out folds (split by LED or by exposure, never by random
+pixels) and names the winner, or "none" when no cause beats the stated
+threshold. :mod:`.report` writes report.json and report.md.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from glossrig.core.errors import InputError
+
+from .catalogue import BrdfModel, brdf_causes
+from .data import load_brdf, load_frames
+from .frames import FrameSet, frame_causes
+from .report import write_report
+from .residuals import brdf_structure, frame_structure
+
+#: base-model median |relative error| above which a given fit cannot be this capture's material
+FIT_MISMATCH = 0.5
+
+
+def load_fit(path):
+    """Luminance Ward parameters of a ``glossrig fit`` JSON."""
+    from glossrig.core.ward import WardParams
+
+    p = Path(path)
+    try:
+        d = json.loads(p.read_text())
+        lum = d["luminance"]
+        return WardParams(**{k: float(lum[k]) for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")})
+    except FileNotFoundError:
+        raise InputError("fit file not found", path=p) from None
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        raise InputError(f"not a glossrig fit file (luminance Ward parameters): {e}", path=p) from None
+
+
+def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: float = 0.8,
+             progress: bool = False, log=print) -> dict:
+    from glossrig.core.fit import fit_samples
+    from glossrig.core.intrinsics import load_camera
+    from glossrig.core.lamps import load_lamps
+    from glossrig.core.ward import ward_from_angles
+
+    t0 = time.time()
+    cam = load_camera(camera)
+    lp = load_lamps(lamps)
+    data = load_brdf(sample_dir, reference_dir, cam, lp, albedo=albedo, progress=progress)
+    log(f"measured {len(data.table)} BRDF samples ({time.time() - t0:.0f} s)")
+    t = data.table
+    if fit is not None:
+        w = load_fit(fit)
+        f = ward_from_angles(t.theta_in, t.theta_out, t.theta_h, t.phi_h, w)
+        rel = np.median(np.abs(t.f / np.maximum(f, 1e-9) - 1))
+        if not np.isfinite(rel) or rel > FIT_MISMATCH:
+            raise InputError(f"the fit does not belong to this capture: its model misses the measured BRDF by a "
+                             f"median {rel:.0%} (> {FIT_MISMATCH:.0%})", path=Path(fit))
+        data.material_fixed = True
+    else:
+        w = fit_samples(t, channels=["luminance"]).fits["luminance"].params
+    log(f"material: {w}")
+    m = BrdfModel.build(data, w)
+    causes = brdf_causes(m)
+    log(f"BRDF-space causes done ({time.time() - t0:.0f} s)")
+    fd = load_frames(sample_dir, data.measured)
+    causes += frame_causes(fd)
+    log(f"frame-space causes done ({time.time() - t0:.0f} s)")
+    structure = {"brdf": brdf_structure(m), "frames": frame_structure(FrameSet(fd))}
+    base = {}
+    for c in causes:
+        base.setdefault(c.space, c.base_error)
+    meta = {"sample": str(sample_dir), "reference": str(reference_dir), "camera": str(camera), "lamps": str(lamps),
+            "fit": str(fit) if fit else None, "material": w.as_dict(), "material_from_capture": fit is None,
+            "n_brdf_rows": int(len(m.rows)), "leds": sorted(int(x) for x in np.unique(t.led)),
+            "splits": {"brdf": "leave one LED out (two halves along the cylinder axis with one LED)",
+                       "frames": "even / odd exposure index", "pixels": "leave one LED out"},
+            "time_s": time.time() - t0}
+    return write_report(out, causes, base, structure, meta)

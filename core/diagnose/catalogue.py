@@ -1,0 +1,324 @@
+"""The catalogue of named causes: each a parameterised extension of the base model
+with its physics, fitted on training folds and scored on held-out data (issue 7).
+
+Three residual spaces, each with its own base model and held-out error (mean
+squared normalised residual, :func:`chi2`):
+
+* ``brdf``: measured BRDF luminance y against the Ward fit (thesis eq. 4.79),
+  ``y = rho_d / pi + rho_s * L(angles)`` with the lobe shape L of the fit and
+  rho_d, rho_s re-solved on each training fold. Residuals are normalised by the
+  sample's HDR noise plus a 2 % model floor. Folds: leave one LED out.
+* ``frames``: raw DN of every exposure against a linear sensor and a steady LED,
+  ``DN - black = rate * t`` with one rate per pixel fitted on the training
+  exposures. Folds: even / odd exposure index (interleaved in time).
+* ``pixels``: each LED's per-pixel rate against the 3x3 median of its own CFA
+  colour (a smooth image). Folds: leave one LED out.
+
+A cause is *significant* when its held-out error is lower than the base
+model's in every fold and the pooled relative gain exceeds
+``GAIN_THRESHOLD + PARAM_PENALTY * (extra parameters)``. The threshold was
+calibrated on null captures (validation/diagnose/README.md): null gains stay
+below it. Extra parameters already pay on held-out data by over-fitting; the
+penalty adds a stated cost on top (a BIC-like preference for the simpler model).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy.ndimage import median_filter
+from scipy.optimize import minimize_scalar
+
+from glossrig.core.angles import ANGLE_COLUMNS
+from glossrig.core.cylinder import SurfaceSamples, sample_angles
+from glossrig.core.ward import WardParams, ward_from_angles
+
+from .data import BrdfData, FrameData
+
+GAIN_THRESHOLD = 0.02      # relative held-out gain a cause must beat (null captures stay below)
+PARAM_PENALTY = 0.002      # added per extra parameter
+MODEL_FLOOR = 0.02         # relative model error added to the noise in BRDF space
+MAX_BRDF_ROWS = 60_000
+MAX_PIXELS = 15_000
+
+
+@dataclass
+class CauseResult:
+    name: str
+    space: str
+    doc: str
+    params: dict
+    stderr: dict
+    error: float               # pooled held-out error of the extended model
+    base_error: float
+    fold_gains: list
+    n_extra_params: int
+    profile: dict | None = None     # held-out error along the cause's main parameter
+    identifiable: bool = True
+    note: str = ""
+    magnitude: float | None = None  # in the twin catalogue's unit, when it maps onto one
+
+    @property
+    def gain(self) -> float:
+        return (self.base_error - self.error) / self.base_error if self.base_error > 0 else 0.0
+
+    @property
+    def threshold(self) -> float:
+        return GAIN_THRESHOLD + PARAM_PENALTY * self.n_extra_params
+
+    @property
+    def significant(self) -> bool:
+        return bool(self.identifiable and self.gain > self.threshold and all(g > 0 for g in self.fold_gains))
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "space": self.space, "params": self.params, "stderr": self.stderr,
+                "magnitude": self.magnitude, "error": self.error, "base_error": self.base_error,
+                "gain": self.gain, "threshold": self.threshold, "fold_gains": self.fold_gains,
+                "n_extra_params": self.n_extra_params, "significant": self.significant,
+                "identifiable": self.identifiable, "note": self.note, "profile": self.profile,
+                "physics": self.doc}
+
+
+def chi2(res: np.ndarray, sigma: np.ndarray) -> float:
+    return float(np.mean((res / sigma) ** 2))
+
+
+# =================================================================== BRDF space
+
+@dataclass
+class BrdfModel:
+    """Rows, lobe and noise of the BRDF-space comparisons."""
+
+    data: BrdfData
+    lobe: WardParams                         # the fit's lobe (rho_s = 1, rho_d = 0)
+    rows: "np.ndarray"                       # indices into data.table used
+    cols: dict = field(default_factory=dict)
+
+    @classmethod
+    def build(cls, data: BrdfData, fit: WardParams, seed: int = 0) -> "BrdfModel":
+        t = data.table
+        rng = np.random.default_rng(seed)
+        rows = np.arange(len(t)) if len(t) <= MAX_BRDF_ROWS else np.sort(rng.choice(len(t), MAX_BRDF_ROWS, False))
+        lobe = WardParams(0.0, 1.0, fit.alpha_x, fit.alpha_y, fit.lobe_rotation)
+        m = cls(data, lobe, rows)
+        s = t.iloc[rows]
+        c = {k: s[src].to_numpy(float) for k, src in
+             [("y", "f"), ("relvar", "relvar"), ("cos_in", "cos_in"), ("u", "u"), ("v", "v"), ("led", "led"),
+              ("rotation", "rotation"), ("signal", "S")] + [(a, a) for a in ANGLE_COLUMNS]}
+        c["L"] = ward_from_angles(c["theta_in"], c["theta_out"], c["theta_h"], c["phi_h"], lobe)
+        m.cols = c
+        base = m.solve_linear([np.full_like(c["L"], 1 / np.pi), c["L"]], np.ones(len(rows), bool))[1]
+        c["sigma"] = np.abs(base) * np.sqrt(c["relvar"] + MODEL_FLOOR ** 2) + 1e-4
+        return m
+
+    def solve_linear(self, basis, train, factor=None):
+        """Weighted least squares of y on ``basis`` (times ``factor``) over ``train``;
+        returns (coefficients, prediction for all rows, covariance)."""
+        c = self.cols
+        X = np.stack(basis, axis=1)
+        if factor is not None:
+            X = X * factor[:, None]
+        sig = c.get("sigma", np.maximum(np.abs(c["y"]), 1e-3))
+        A = X[train] / sig[train, None]
+        b = c["y"][train] / sig[train]
+        coef, *_ = np.linalg.lstsq(A, b, rcond=None)
+        r = b - A @ coef
+        dof = max(len(b) - len(coef), 1)
+        cov = np.linalg.pinv(A.T @ A) * float(r @ r) / dof
+        return coef, X @ coef, cov
+
+    def folds(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        leds = np.unique(self.cols["led"])
+        if len(leds) >= 2:
+            return [(self.cols["led"] != l, self.cols["led"] == l) for l in leds]
+        # one LED: the two halves of the sample along the pixel rows (cylinder axis)
+        v = self.cols["v"]
+        top = v < np.median(v)
+        return [(~top, top), (top, ~top)]
+
+
+def _base_brdf(m: BrdfModel):
+    c = m.cols
+    return lambda p: ([np.full_like(c["L"], 1 / np.pi), c["L"]], None)
+
+
+def _brdf_scalar(m: BrdfModel, make: Callable[[float], tuple], bounds, grid_n=25):
+    """Fit a scalar parameter (with rho_d, rho_s linear) per fold; pooled held-out error,
+    fold gains and the held-out profile along the parameter."""
+    c = m.cols
+    grid = np.linspace(*bounds, grid_n)
+    folds = m.folds()
+    base_res, ext_res, gains, estimates = [], [], [], []
+    prof = np.zeros(grid_n)
+    for train, test in folds:
+        basis0, f0 = _base_brdf(m)(None)
+        _, p0, _ = m.solve_linear(basis0, train, f0)
+        e0 = chi2((c["y"] - p0)[test], c["sigma"][test])
+
+        def train_cost(p):
+            basis, fac = make(p)
+            _, pr, _ = m.solve_linear(basis, train, fac)
+            return chi2((c["y"] - pr)[train], c["sigma"][train])
+
+        costs = np.array([train_cost(p) for p in grid])
+        k = int(np.argmin(costs))
+        lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, grid_n - 1)]
+        p_best = minimize_scalar(train_cost, bounds=(lo, hi), method="bounded",
+                                 options={"xatol": (bounds[1] - bounds[0]) * 1e-4}).x if hi > lo else grid[k]
+        basis, fac = make(p_best)
+        _, pr, _ = m.solve_linear(basis, train, fac)
+        e1 = chi2((c["y"] - pr)[test], c["sigma"][test])
+        for j, p in enumerate(grid):
+            b2, f2 = make(p)
+            _, pg, _ = m.solve_linear(b2, train, f2)
+            prof[j] += chi2((c["y"] - pg)[test], c["sigma"][test]) * test.sum()
+        base_res.append(e0 * test.sum())
+        ext_res.append(e1 * test.sum())
+        gains.append((e0 - e1) / e0)
+        estimates.append(p_best)
+    n = sum(t.sum() for _, t in folds)
+    return sum(base_res) / n, sum(ext_res) / n, gains, estimates, {"grid": grid.tolist(), "error": (prof / n).tolist()}
+
+
+def _scalar_all(m: BrdfModel, make, bounds):
+    """The parameter fitted on all rows, with its standard error from the curvature of chi^2."""
+    c = m.cols
+    allr = np.ones(len(c["y"]), bool)
+
+    def cost(p):
+        basis, fac = make(p)
+        _, pr, _ = m.solve_linear(basis, allr, fac)
+        return float(np.sum(((c["y"] - pr) / c["sigma"]) ** 2))
+
+    grid = np.linspace(*bounds, 25)
+    k = int(np.argmin([cost(p) for p in grid]))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, 24)]
+    p = minimize_scalar(cost, bounds=(lo, hi), method="bounded").x
+    h = (bounds[1] - bounds[0]) * 1e-3
+    curv = (cost(p + h) - 2 * cost(p) + cost(p - h)) / h ** 2
+    red = cost(p) / max(len(c["y"]) - 3, 1)
+    se = math.sqrt(2 * red / curv) if curv > 0 else float("nan")
+    return float(p), se
+
+
+def vignetting_factor(u, v, size, pp):
+    """q = r^2 / r_corner^2 (r from the principal point), the twin's fall-off variable."""
+    w, h = size
+    cx, cy = pp
+    rc2 = max(cx ** 2, (w - 1 - cx) ** 2) + max(cy ** 2, (h - 1 - cy) ** 2)
+    return ((u - cx) ** 2 + (v - cy) ** 2) / rc2
+
+
+def brdf_causes(m: BrdfModel) -> list[CauseResult]:
+    c = m.cols
+    d = m.data
+    out = []
+    one = np.full_like(c["L"], 1 / np.pi)
+
+    # ---- stray light: linear, three coefficients
+    doc = ("Stray light (thesis 4.1.5): light scattered by the box and board adds a uniform radiance "
+           "s I / (pi d^2) while an LED is on. Divided by the reference's cos(theta_in) I / d^2 it adds "
+           "s / (pi cos theta_in) to the measured BRDF: largest at grazing incidence, independent of the lobe.")
+    extra = 1.0 / (np.pi * np.maximum(c["cos_in"], 0.05))
+    out.append(_linear_cause(m, "stray_light", doc, [one, c["L"], extra], "s", "fraction of the LED's direct irradiance"))
+
+    # ---- vignetting: multiplicative, scalar k
+    q = vignetting_factor(c["u"] + 1.0, c["v"] + 1.0, d.image_size, d.principal_point)
+    qp = np.array([vignetting_factor(*d.patch_uv[r], d.image_size, d.principal_point) for r in c["rotation"]])
+    doc = ("Lens vignetting (cos^4 law and the aperture): irradiance at the sensor falls as 1 - k (r/r_corner)^2 "
+           "with the distance r from the principal point. The sample and the white patch sit at different r, so "
+           "the patch normalisation leaves (1 - k q) / (1 - k q_patch) on every value when the sample capture is "
+           "vignetted and the reference is not; it grows with the distance from the optical centre.")
+    out.append(_scalar_cause(m, "vignetting", doc, lambda k: ([one, c["L"]], (1 - k * q) / (1 - k * qp)),
+                             (-0.5, 0.9), "k", "relative fall-off at the corner"))
+
+    # ---- sample rotation offset: scalar, recompute angles
+    geo = d.measured.geometry
+    lamps_rows = {}
+
+    def lobe_rot(delta):
+        L = np.empty_like(c["L"])
+        for (led, rot), idx in lamps_rows.items():
+            s = SurfaceSamples(c["u"][idx], c["v"][idx], pts[idx], nrm[idx], geo[rot].surface.camera_centre,
+                               geo[rot].surface.axis)
+            ang = sample_angles(s, lamp_pos[led], rot + delta)
+            L[idx] = ward_from_angles(ang["theta_in"], ang["theta_out"], ang["theta_h"], ang["phi_h"], m.lobe)
+        return L
+
+    tab = d.table.iloc[m.rows]
+    pts = tab[["x", "y", "z"]].to_numpy(float)
+    nrm = tab[["nx", "ny", "nz"]].to_numpy(float)
+    lamp_pos = d.lamps
+    for key, idx in tab.groupby(["led", "rotation"]).indices.items():
+        lamps_rows[(int(key[0]), float(key[1]))] = idx
+    doc = ("Sample rotation offset: the sample is wrapped turned by delta from the rotation the capture states, "
+           "which rotates its tangent frame about the normal and shifts phi_h (and the lobe's azimuth) by delta. "
+           "With the material's lobe orientation fitted on the same capture, a global delta is the same as a "
+           "change of lobe_rotation: it is identifiable only against a material fit from another capture (--fit).")
+    cache = {}
+
+    def make_rot(delta):
+        key = round(float(delta), 6)
+        if key not in cache:
+            cache[key] = lobe_rot(delta)
+        return [one, cache[key]], None
+
+    r = _scalar_cause(m, "sample_rotation_offset", doc, make_rot, (-20.0, 20.0), "delta_deg", "degrees", grid_n=17)
+    if not d.material_fixed:
+        r.identifiable = False
+        r.note = ("lobe_rotation was fitted on this capture, so a rotation offset is absorbed by it; "
+                  "pass --fit from another capture of the material to test it")
+    out.append(r)
+
+    # ---- Fresnel factor on the lobe (Schlick)
+    doc = ("Fresnel reflectance on the specular lobe (Cook-Torrance; Schlick 1994): the lobe is multiplied by "
+           "F(theta_d) / F(0) with F = F0 + (1 - F0)(1 - cos theta_d)^5, F0 = ((n-1)/(n+1))^2. The rig sees "
+           "theta_d < ~30 degrees where F changes by < 1 %, so n is expected to be unidentifiable.")
+    cd = np.cos(c["theta_d"])
+
+    def make_fres(n):
+        f0 = ((n - 1) / (n + 1)) ** 2
+        return [one, c["L"] * (f0 + (1 - f0) * (1 - cd) ** 5) / f0], None
+
+    r = _scalar_cause(m, "fresnel", doc, make_fres, (1.1, 3.0), "n", "refractive index", grid_n=15)
+    out.append(r)
+    return out
+
+
+def _flat(profile) -> bool:
+    e = np.asarray(profile["error"])
+    return bool((e.max() - e.min()) / max(e.min(), 1e-12) < GAIN_THRESHOLD)
+
+
+def _linear_cause(m: BrdfModel, name, doc, basis, pname, unit) -> CauseResult:
+    c = m.cols
+    base_res = ext_res = 0.0
+    gains = []
+    n = 0
+    for train, test in m.folds():
+        _, p0, _ = m.solve_linear(basis[:2], train)
+        _, p1, _ = m.solve_linear(basis, train)
+        e0 = chi2((c["y"] - p0)[test], c["sigma"][test])
+        e1 = chi2((c["y"] - p1)[test], c["sigma"][test])
+        base_res += e0 * test.sum()
+        ext_res += e1 * test.sum()
+        n += test.sum()
+        gains.append((e0 - e1) / e0)
+    coef, _, cov = m.solve_linear(basis, np.ones(len(c["y"]), bool))
+    val, se = float(coef[-1]), float(math.sqrt(max(cov[-1, -1], 0)))
+    return CauseResult(name, "brdf", doc, {pname: val, "unit": unit}, {pname: se}, ext_res / n, base_res / n,
+                       gains, 1, magnitude=val)
+
+
+def _scalar_cause(m: BrdfModel, name, doc, make, bounds, pname, unit, grid_n=25) -> CauseResult:
+    e0, e1, gains, est, prof = _brdf_scalar(m, make, bounds, grid_n)
+    p, se = _scalar_all(m, make, bounds)
+    r = CauseResult(name, "brdf", doc, {pname: p, "unit": unit, "fold_estimates": est}, {pname: se}, e1, e0,
+                    gains, 1, profile=prof, magnitude=p)
+    if _flat(prof):
+        r.identifiable = False
+        r.note = (f"held-out error varies by less than {GAIN_THRESHOLD:.0%} over {pname} in "
+                  f"[{bounds[0]:g}, {bounds[1]:g}]: the data cannot tell this cause apart")
+    return r

@@ -1,0 +1,137 @@
+"""What diagnosis works on: one capture measured twice over (issue 7).
+
+* **BRDF space** (:class:`BrdfData`): the capture run through the pipeline's own
+  stages (:func:`glossrig.core.extract.measure_capture`, diffuse normalisation by
+  the reference, thesis eq. 4.73-4.78), one row per (Bayer block, LED, rotation)
+  with its pixel, surface point and normal, angles, the patch-normalised sample
+  and reference values and the measured BRDF (Rec. 709 luminance ``y``).
+* **Frame space** (:class:`FrameData`): the raw DN of every exposure of every LED
+  in the crop holding the sample and the white patch, with the exposure time,
+  the time stamp and the sensor's levels and noise figures taken from the files
+  and the rig (thesis 4.3.1-4.3.3). A linear sensor predicts
+  ``DN = black + rate * t`` per pixel; sensor and LED causes bend that line.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from glossrig.core.capture import load_manifest
+from glossrig.core.errors import InputError
+from glossrig.core.extract import Measured, check_compatible, diffuse_normalize, measure_capture
+from glossrig.core.raw import read_raw
+from glossrig.core.rig import load_rig
+
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+@dataclass
+class BrdfData:
+    table: pd.DataFrame           # rows: block x LED x rotation; f = measured luminance BRDF
+    measured: Measured            # the sample capture as measured (geometry per rotation)
+    albedo: float
+    image_size: tuple[int, int]   # full image (width, height)
+    principal_point: tuple[float, float]
+    patch_uv: dict                # rotation -> (u, v) of the white patch centre (full image)
+    lamps: dict                   # LED id -> lamp position (holder frame, mm)
+    material_fixed: bool = False  # True when the material fit comes from another capture
+
+
+@dataclass
+class LedFrames:
+    led: int
+    rotation: float
+    dn: np.ndarray          # (n_exp, h, w) float32 raw DN of the crop
+    exposure_s: np.ndarray  # (n_exp,)
+    time_s: np.ndarray      # (n_exp,) seconds since the capture's first sequence frame
+    black: np.ndarray       # (h, w) stated black level per pixel
+    origin: tuple[int, int]
+    files: list = field(default_factory=list)
+
+
+@dataclass
+class FrameData:
+    leds: list[LedFrames]
+    white: float
+    e_per_dn: float         # conversion gain at the sequence ISO (e-/DN)
+    read_dn: float          # read noise (DN RMS), quantisation included
+
+    def variance(self, signal_dn) -> np.ndarray:
+        """Temporal variance of a frame's DN at an expected signal above black (EMVA 1288)."""
+        return np.maximum(signal_dn, 0.0) / self.e_per_dn + self.read_dn ** 2
+
+
+def _lum(df, prefix=""):
+    return LUMA[0] * df[prefix + "r"] + LUMA[1] * df[prefix + "g"] + LUMA[2] * df[prefix + "b"]
+
+
+def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progress: bool = False) -> BrdfData:
+    """Measure sample and reference alike and divide them (the pipeline's extraction),
+    keeping the geometry columns the causes need."""
+    check_compatible(sample_dir, reference_dir)
+    ms = measure_capture(sample_dir, cam, lamps, progress=progress)
+    mr = measure_capture(reference_dir, cam, lamps, progress=progress)
+    s = ms.table.copy()
+    for c in "rgb":
+        s[f"S_{c}"] = s[c]
+        s[f"relvar_S_{c}"] = s[f"var_{c}"] / np.maximum(s[c], 1e-12) ** 2
+    t = diffuse_normalize(s, mr.table, albedo=albedo)
+    t = t.reset_index(drop=True)
+    t["f"] = _lum(t)
+    t["S"] = _lum(t, "S_")
+    t["R"] = albedo / np.pi * t["S"] / np.where(t["f"] > 0, t["f"], np.nan)
+    # relative variance of the measured value: the sample's (green dominates luminance);
+    # the reference is brighter and its noise is left to the model floor of the residuals
+    t["relvar"] = t["relvar_S_g"]
+    t = t[np.isfinite(t[["f", "S", "R"]]).all(axis=1) & (t.R > 0)].reset_index(drop=True)
+    if len(t) < 200:
+        raise InputError(f"only {len(t)} usable BRDF samples: too few to diagnose", path=Path(sample_dir))
+    man = load_manifest(sample_dir)
+    first = next(im for im in man.images if im.role == "calibration")
+    fr = read_raw(man.folder / first.file, crop=(0, 0, 2, 2), exposure_s=first.exposure_s, iso=first.iso,
+                  aperture=first.aperture)
+    patch_uv = {}
+    for rot, g in ms.geometry.items():
+        ii, jj = np.nonzero(g.patch_mask)
+        patch_uv[rot] = (g.crop[0] + float(jj.mean()), g.crop[1] + float(ii.mean()))
+    return BrdfData(t, ms, albedo, tuple(fr.full_size), (cam.cx, cam.cy), patch_uv, dict(lamps))
+
+
+def _seconds(ts: str) -> float:
+    try:
+        return datetime.fromisoformat(ts).timestamp()
+    except (TypeError, ValueError):
+        raise InputError(f"bad time stamp {ts!r} in the manifest") from None
+
+
+def load_frames(sample_dir, measured: Measured) -> FrameData:
+    """Raw DN of each LED's exposure sequence (first repeat) in the measured crop."""
+    man = load_manifest(sample_dir)
+    rig = load_rig(man.rig_path())
+    sec = rig.raw.get("sensor") or {}
+    if "electrons_per_dn_iso100" not in sec or "read_noise_e" not in sec:
+        raise InputError("rig has no [sensor] electrons_per_dn_iso100 / read_noise_e", path=rig.path)
+    seq_all = man.select("sequence")
+    t0 = min(_seconds(im.time) for im in seq_all)
+    leds, white, iso = [], None, None
+    for rot, g in sorted(measured.geometry.items()):
+        for led in sorted({im.leds[0] for im in man.select("sequence", rotation=rot)}):
+            seq = [im for im in man.select("sequence", rotation=rot) if im.leds == [led] and im.repeat == 0]
+            seq.sort(key=lambda im: im.exposure_s)
+            frames = [read_raw(man.folder / im.file, crop=g.crop, exposure_s=im.exposure_s, iso=im.iso,
+                               aperture=im.aperture) for im in seq]
+            f0 = frames[0]
+            h, w = f0.mosaic.shape
+            black = np.tile(np.asarray(f0.black, float).reshape(2, 2), (h // 2 + 1, w // 2 + 1))[:h, :w]
+            white, iso = f0.white, seq[0].iso
+            leds.append(LedFrames(led, rot, np.stack([f.mosaic.astype(np.float32) for f in frames]),
+                                  np.array([im.exposure_s for im in seq]),
+                                  np.array([_seconds(im.time) - t0 for im in seq]), black, f0.origin,
+                                  [im.file for im in seq]))
+    k = float(sec["electrons_per_dn_iso100"]) * 100.0 / float(iso)
+    read = float(np.sqrt((float(sec["read_noise_e"]) / k) ** 2 + 1.0 / 12.0))
+    return FrameData(leds, float(white), k, read)

@@ -1,0 +1,296 @@
+"""Frame-space and pixel-space causes: the sensor and the LEDs seen in the raw DN
+(thesis 4.3.1-4.3.3; EMVA 1288 for the sensor model).
+
+Base model per pixel: ``DN - black = rate * t`` over the exposures where the pixel
+is not clipped, with the variance of a photon-transfer sensor (shot + read
+noise). Each cause bends that line in its own way:
+
+* black_level_offset b: ``DN - black = b + rate t``. The offset is the same at
+  every exposure, so it stands out against the short exposures of dark pixels.
+* sensor_nonlinearity c: ``DN - black = x (1 - c x / (white - black))``, x = rate t:
+  a deficit that grows with the signal level, the same at any exposure time.
+* led_drift a: ``DN - black = rate t (1 + a tau)`` with tau the frame's time (minutes)
+  from the middle of its LED's sequence: a gain trend against capture order that
+  the same pixel shows at every signal level (the LED warms, thesis fig. 4.12).
+* hot_pixels (pixel space): a pixel's dark current adds the same rate (DN/s)
+  under every LED, so a hot pixel stands out against its same-colour
+  neighbours at the same place in every LED's rate image.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.ndimage import median_filter
+from scipy.optimize import minimize_scalar
+
+from .catalogue import MAX_PIXELS, CauseResult, chi2
+from .data import FrameData
+
+CLIP_MARGIN = 0.95          # a DN above CLIP_MARGIN * the effective white is treated as clipped
+HOT_Z = 6.0                 # a hot pixel stands this many sigma above its neighbours in every training LED
+
+
+def effective_white(dn, white):
+    """The level where pixels really saturate: a compressive sensor clips below the stated white
+    level, so the highest DN the frames reach (99.99th percentile) is taken when lower."""
+    return float(min(white, np.percentile(dn, 99.99)))
+
+
+class FrameSet:
+    """Pixels sampled from each LED's crop: Z (n_exp, P) signal above the stated black."""
+
+    def __init__(self, fd: FrameData, seed: int = 0):
+        rng = np.random.default_rng(seed)
+        self.fd = fd
+        self.Z, self.T, self.ok, self.tau, self.led = [], [], [], [], []
+        rng_dn = fd.white - float(np.mean(fd.leds[0].black))
+        self.range = rng_dn
+        for lf in fd.leds:
+            n_exp, h, w = lf.dn.shape
+            flat = lf.dn.reshape(n_exp, -1)
+            idx = np.arange(h * w)
+            if idx.size > MAX_PIXELS:
+                idx = np.sort(rng.choice(idx.size, MAX_PIXELS, replace=False))
+            dn = flat[:, idx].astype(np.float64)
+            z = dn - lf.black.ravel()[idx][None, :]
+            ok = dn < CLIP_MARGIN * effective_white(lf.dn, fd.white)
+            self.Z.append(z)
+            self.ok.append(ok)
+            self.T.append(lf.exposure_s[:, None] * np.ones((1, idx.size)))
+            self.tau.append(((lf.time_s - 0.5 * (lf.time_s.min() + lf.time_s.max())) / 60.0)[:, None]
+                            * np.ones((1, idx.size)))
+            self.led.append(lf.led)
+        self.n_exp = [z.shape[0] for z in self.Z]
+
+    def folds(self):
+        """Even / odd exposure index: two folds interleaved in exposure time and capture order."""
+        out = []
+        for parity in (0, 1):
+            tr, te = [], []
+            for n in self.n_exp:
+                e = (np.arange(n) % 2 == parity)[:, None]
+                tr.append(e)
+                te.append(~e)
+            out.append((tr, te))
+        return out
+
+
+def _fit_rates(Z, T, W, M, offset=0.0, gain=None):
+    """Per-pixel weighted least-squares rate of (Z - offset) = rate * T * gain over mask M."""
+    G = T if gain is None else T * gain
+    num = np.sum(np.where(M, W * G * (Z - offset), 0.0), axis=0)
+    den = np.sum(np.where(M, W * G * G, 0.0), axis=0)
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+
+
+def _weights(fs: FrameSet, Z):
+    return 1.0 / fs.fd.variance(Z)
+
+
+def _score(fs: FrameSet, model, fold):
+    """Held-out chi^2 (pooled over LEDs) of ``model(i, train_mask) -> prediction (n_exp, P)``."""
+    tr, te = fold
+    ss, n = 0.0, 0
+    for i in range(len(fs.Z)):
+        pred = model(i, tr[i] & fs.ok[i])
+        m = te[i] & fs.ok[i]
+        var = fs.fd.variance(pred)
+        ss += float(np.sum(np.where(m, (fs.Z[i] - pred) ** 2 / var, 0.0)))
+        n += int(m.sum())
+    return ss / max(n, 1)
+
+
+def _linear_pred(fs, i, M, offset=0.0, gain=None, c=0.0):
+    Z, T = fs.Z[i], fs.T[i]
+    W = _weights(fs, Z)
+    if c == 0.0:
+        r = _fit_rates(Z, T, W, M, offset, gain)
+        x = r[None, :] * T * (1.0 if gain is None else gain)
+        return offset + x
+    # nonlinear: Gauss-Newton on the per-pixel rate of z = x - c x^2 / range
+    G = T if gain is None else T * gain
+    r = _fit_rates(Z, T, W, M, offset, gain)
+    for _ in range(4):
+        x = r[None, :] * G
+        f = x - c * x * x / fs.range
+        J = G * np.maximum(1 - 2 * c * x / fs.range, 0.2)
+        num = np.sum(np.where(M, W * J * (Z - offset - f), 0.0), axis=0)
+        den = np.sum(np.where(M, W * J * J, 0.0), axis=0)
+        step = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+        r = np.maximum(r + np.clip(step, -0.5 * np.abs(r) - 1.0, 0.5 * np.abs(r) + 1.0), 0.0)
+    x = r[None, :] * G
+    return offset + x - c * x * x / fs.range
+
+
+def _scalar_fit(cost, bounds, grid_n=21):
+    grid = np.linspace(*bounds, grid_n)
+    vals = np.array([cost(p) for p in grid])
+    k = int(np.argmin(vals))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, grid_n - 1)]
+    return float(minimize_scalar(cost, bounds=(lo, hi), method="bounded").x), grid, vals
+
+
+def _train_cost(fs, pred_fn, fold):
+    tr, _ = fold
+    ss, n = 0.0, 0
+    for i in range(len(fs.Z)):
+        M = tr[i] & fs.ok[i]
+        pred = pred_fn(i, M)
+        ss += float(np.sum(np.where(M, (fs.Z[i] - pred) ** 2 / fs.fd.variance(pred), 0.0)))
+        n += int(M.sum())
+    return ss / max(n, 1)
+
+
+def _frame_cause(fs: FrameSet, name, doc, pname, unit, bounds, make_pred, grid_n=13) -> CauseResult:
+    """A global scalar cause in frame space: fitted per fold on the training exposures."""
+    base_err = ext_err = 0.0
+    gains, est = [], []
+    prof = np.zeros(grid_n)
+    grid = np.linspace(*bounds, grid_n)
+    for fold in fs.folds():
+        e0 = _score(fs, lambda i, M: _linear_pred(fs, i, M), fold)
+        p, _, _ = _scalar_fit(lambda q: _train_cost(fs, make_pred(q), fold), bounds, grid_n)
+        e1 = _score(fs, make_pred(p), fold)
+        prof += np.array([_score(fs, make_pred(q), fold) for q in grid]) / 2
+        base_err += e0 / 2
+        ext_err += e1 / 2
+        gains.append((e0 - e1) / e0)
+        est.append(p)
+    allf = ([np.ones_like(o) for o in fs.ok], [np.ones_like(o) for o in fs.ok])
+    cost_all = lambda q: _train_cost(fs, make_pred(q), allf)
+    p, _, _ = _scalar_fit(cost_all, bounds, grid_n)
+    h = (bounds[1] - bounds[0]) * 1e-3
+    n = sum(int(o.sum()) for o in fs.ok)
+    curv = n * (cost_all(p + h) - 2 * cost_all(p) + cost_all(p - h)) / h ** 2
+    se = math.sqrt(2 * cost_all(p) / curv) if curv > 0 else float("nan")
+    return CauseResult(name, "frames", doc, {pname: p, "unit": unit, "fold_estimates": est}, {pname: se},
+                       ext_err, base_err, gains, 1, profile={"grid": grid.tolist(), "error": prof.tolist()},
+                       magnitude=p)
+
+
+def frame_causes(fd: FrameData) -> list[CauseResult]:
+    fs = FrameSet(fd)
+    out = []
+    doc = ("Black level offset: the sensor's true black level differs from the one the raw file states by b DN "
+           "(temperature, firmware). Every frame carries b on top of rate * t, so the relative error is largest "
+           "in short exposures and dark pixels and dies away with the signal.")
+    out.append(_frame_cause(fs, "black_level_offset", doc, "b_dn", "DN", (-50.0, 50.0),
+                            lambda b: (lambda i, M: _linear_pred(fs, i, M, offset=b))))
+    doc = ("Compressive sensor response (full-well and ADC non-linearity, EMVA 1288 sec. 8): the signal x above "
+           "black is read as x (1 - c x / (white - black)); the deficit grows with the signal level and is the "
+           "same at any exposure time, so long and short exposures of one pixel disagree in proportion to DN.")
+    out.append(_frame_cause(fs, "sensor_nonlinearity", doc, "c", "relative compression at white", (-0.1, 0.3),
+                            lambda c: (lambda i, M: _linear_pred(fs, i, M, c=c))))
+    out.append(_drift_cause(fs))
+    out.append(hot_pixel_cause(fd))
+    return out
+
+
+def _drift_cause(fs: FrameSet) -> CauseResult:
+    doc = ("LED drift (thesis 4.3.3, fig. 4.12): the LED's output changes slowly while its exposure sequence is "
+           "taken (warm-up, temperature), a gain 1 + a tau with tau the frame's time from the middle of the "
+           "sequence. Every pixel of a frame shares the gain, whatever its signal level: the residual follows "
+           "capture order, not DN. Fitted per LED (a in 1/min).")
+    bounds = (-0.02, 0.02)
+    base_err = ext_err = 0.0
+    gains = []
+    per_led = {}
+    for fold in fs.folds():
+        tr, te = fold
+        e0 = _score(fs, lambda i, M: _linear_pred(fs, i, M), fold)
+        slopes = []
+        for i in range(len(fs.Z)):
+            def cost(a, i=i):
+                M = tr[i] & fs.ok[i]
+                pred = _linear_pred(fs, i, M, gain=1 + a * fs.tau[i])
+                return float(np.sum(np.where(M, (fs.Z[i] - pred) ** 2 / fs.fd.variance(pred), 0.0)))
+            a, _, _ = _scalar_fit(cost, bounds, 11)
+            slopes.append(a)
+        e1 = _score(fs, lambda i, M: _linear_pred(fs, i, M, gain=1 + slopes[i] * fs.tau[i]), fold)
+        base_err += e0 / 2
+        ext_err += e1 / 2
+        gains.append((e0 - e1) / e0)
+        for i, a in enumerate(slopes):
+            per_led.setdefault(str(fs.led[i]), []).append(a)
+    params = {"gain_slope_per_min": {k: float(np.mean(v)) for k, v in per_led.items()}, "unit": "1/min"}
+    stderr = {"gain_slope_per_min": {k: float(abs(v[0] - v[1]) / 2) for k, v in per_led.items()}}
+    mag = float(max(abs(np.mean(v)) for v in per_led.values()))
+    r = CauseResult("led_drift", "frames", doc, params, stderr, ext_err, base_err, gains, len(fs.Z),
+                    magnitude=mag)
+    r.note = "magnitude = largest |gain slope| (1/min); fold spread as uncertainty"
+    return r
+
+
+def rate_maps(fd: FrameData):
+    """Per LED: full-crop rate (DN/s) from all unclipped exposures and its variance."""
+    out = []
+    for lf in fd.leds:
+        z = lf.dn.astype(np.float64) - lf.black[None]
+        ok = lf.dn < CLIP_MARGIN * effective_white(lf.dn, fd.white)
+        t = lf.exposure_s[:, None, None]
+        w = 1.0 / fd.variance(z)
+        den = np.sum(np.where(ok, w * t * t, 0.0), axis=0)
+        rate = np.sum(np.where(ok, w * t * z, 0.0), axis=0) / np.maximum(den, 1e-30)
+        out.append((rate, 1.0 / np.maximum(den, 1e-30)))
+    return out
+
+
+def _neighbour_excess(rate, var):
+    """Rate minus the 3x3 median of its own CFA colour, normalised by noise + 2 % of the local level."""
+    med = np.empty_like(rate)
+    for di in range(2):
+        for dj in range(2):
+            med[di::2, dj::2] = median_filter(rate[di::2, dj::2], size=3, mode="nearest")
+    ex = rate - med
+    sig = np.sqrt(var + (0.02 * np.abs(med)) ** 2)
+    return ex, sig
+
+
+def _is_spike(ex, sig, rate):
+    """HOT_Z sigma above the same-colour neighbours."""
+    return ex / sig > HOT_Z
+
+
+def _consistent(excesses):
+    """A dark current adds the same DN/s under every LED; scene detail scales with each LED's light."""
+    e = np.stack(excesses)
+    return (e.max(axis=0) - e.min(axis=0)) < 0.25 * np.abs(e).max(axis=0)
+
+
+def hot_pixel_cause(fd: FrameData) -> CauseResult:
+    doc = ("Hot pixels: a fraction of the sensor's pixels has a dark current far above the nominal one "
+           "(lattice defects). The extra charge grows with exposure time like light, so the HDR rate of the pixel "
+           "is raised by the same DN/s under every LED: an isolated spike against its same-colour neighbours, "
+           "at the same place in every LED's image.")
+    maps = rate_maps(fd)
+    ex = [_neighbour_excess(r, v) for r, v in maps]
+    n = len(ex)
+    base_err = ext_err = 0.0
+    gains = []
+    if n < 2:
+        return CauseResult("hot_pixels", "pixels", doc, {"fraction": 0.0}, {"fraction": float("nan")}, 1.0, 1.0,
+                           [0.0], 1, identifiable=False, note="needs two LEDs or more (split by LED)")
+    for k in range(n):
+        train = [ex[j] for j in range(n) if j != k]
+        cand = np.all([_is_spike(e, s, r) for (e, s), (r, _) in zip(train, [maps[j] for j in range(n) if j != k])],
+                      axis=0)
+        if len(train) > 1:
+            cand &= _consistent([e for e, _ in train])
+        h = np.median([e for e, _ in train], axis=0) * cand
+        e, s = ex[k]
+        e0 = chi2(e, s)
+        e1 = chi2(e - h, s)
+        base_err += e0 / n
+        ext_err += e1 / n
+        gains.append((e0 - e1) / e0)
+    cand = np.all([_is_spike(e, s, r) for (e, s), (r, _) in zip(ex, maps)], axis=0) & _consistent([e for e, _ in ex])
+    rates = np.median([e for e, _ in ex], axis=0)[cand]
+    frac = float(cand.mean())
+    dark = float(np.median(rates) * fd.e_per_dn) if rates.size else 0.0
+    se = float(math.sqrt(max(cand.sum(), 1)) / cand.size)
+    r = CauseResult("hot_pixels", "pixels", doc, {"fraction": frac, "n_pixels": int(cand.sum()),
+                                                 "dark_current_e_s": dark, "unit": "fraction of pixels"},
+                    {"fraction": se}, ext_err, base_err, gains, int(cand.sum()), magnitude=frac)
+    r.n_extra_params = 1   # the fraction; the spike heights are measured, not free per held-out LED
+    return r

@@ -1,0 +1,58 @@
+"""Hide sensor effects in an existing capture by rewriting its raw values, outside the twin.
+
+Used by the tests and the blind study so that finding these effects does not
+lean on the twin's own implementation: each DNG of the capture is decoded with
+:func:`glossrig.core.raw.read_raw`, its mosaic changed, and written back with
+:func:`glossrig.twin.dng.write_dng` (same CFA, levels, exposure metadata); the
+manifest's checksums are updated. The stated black level is left unchanged.
+
+* ``black_level_offset=b``: every DN + b (the sensor's true black differs by b).
+* ``sensor_nonlinearity=c``: x -> x (1 - c x / (white - black)) for the signal x above black.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from glossrig.core.errors import InputError
+
+REWRITABLE = ("black_level_offset", "sensor_nonlinearity")
+CFA_NAMES = {0: "R", 1: "G", 2: "B"}
+
+
+def rewrite_capture(src, dst, effect: str, value: float) -> Path:
+    from glossrig.core.raw import read_raw
+    from glossrig.twin.dng import write_dng
+
+    if effect not in REWRITABLE:
+        raise InputError(f"can only rewrite {', '.join(REWRITABLE)}, not {effect!r}")
+    src, dst = Path(src), Path(dst)
+    if dst.exists():
+        raise InputError("destination exists", path=dst)
+    shutil.copytree(src, dst)
+    man = json.loads((dst / "capture.json").read_text())
+    for im in man["images"]:
+        if im["role"] != "sequence":
+            continue
+        p = dst / im["file"]
+        fr = read_raw(p, exposure_s=im["exposure_s"], iso=im["iso"], aperture=im["aperture"])
+        dn = fr.mosaic.astype(np.float64)
+        black = np.tile(np.asarray(fr.black, float).reshape(2, 2), (dn.shape[0] // 2 + 1, dn.shape[1] // 2 + 1))
+        black = black[:dn.shape[0], :dn.shape[1]]
+        if effect == "black_level_offset":
+            dn = dn + value
+        else:
+            x = np.clip(dn - black, 0, None)
+            dn = black + x * (1.0 - value * x / (fr.white - black))
+        mosaic = np.clip(np.round(dn), 0, fr.white).astype(np.uint16)
+        cfa = "".join(CFA_NAMES[int(c)] for c in np.asarray(fr.cfa).ravel())
+        im["sha256"] = write_dng(p, mosaic, cfa=cfa, black_level=tuple(int(b) for b in np.asarray(fr.black).ravel()),
+                                 white_level=int(fr.white), exposure_s=im["exposure_s"], iso=im["iso"],
+                                 aperture=im["aperture"], time=datetime.fromisoformat(im["time"]), overwrite=True)
+    man.setdefault("hidden_outside_twin", {})[effect] = value
+    (dst / "capture.json").write_text(json.dumps(man, indent=1))
+    return dst

@@ -1,0 +1,107 @@
+"""report.json and report.md with the residual plots (issue 7, step 5)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .catalogue import GAIN_THRESHOLD, PARAM_PENALTY, CauseResult
+
+
+def verdict(causes: list[CauseResult]) -> str:
+    sig = [c for c in causes if c.significant]
+    return max(sig, key=lambda c: c.gain).name if sig else "none"
+
+
+def _plots(out: Path, structure: dict, causes: list[CauseResult]) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files = []
+    for space, st in structure.items():
+        n = len(st)
+        fig, axs = plt.subplots(1, n, figsize=(3.2 * n, 2.8), squeeze=False)
+        for ax, (k, b) in zip(axs[0], st.items()):
+            ax.plot(b["x"], b["mean"], "o-", ms=3)
+            ax.axhline(0, color="k", lw=0.5)
+            ax.set_title(k, fontsize=8)
+            ax.tick_params(labelsize=7)
+        axs[0][0].set_ylabel("mean normalised residual", fontsize=8)
+        fig.tight_layout()
+        f = f"residuals_{space}.png"
+        fig.savefig(out / f, dpi=90)
+        plt.close(fig)
+        files.append(f)
+    prof = [c for c in causes if c.profile]
+    if prof:
+        fig, axs = plt.subplots(1, len(prof), figsize=(3.2 * len(prof), 2.8), squeeze=False)
+        for ax, c in zip(axs[0], prof):
+            ax.plot(c.profile["grid"], c.profile["error"], "-")
+            ax.axhline(c.base_error, color="r", lw=0.7, ls="--")
+            ax.set_title(f"{c.name} ({c.space})", fontsize=8)
+            ax.set_xlabel(next(k for k in c.params if k not in ("unit", "fold_estimates")), fontsize=8)
+            ax.tick_params(labelsize=7)
+        axs[0][0].set_ylabel("held-out error (base dashed)", fontsize=8)
+        fig.tight_layout()
+        fig.savefig(out / "profiles.png", dpi=90)
+        plt.close(fig)
+        files.append("profiles.png")
+    return files
+
+
+def _num(x):
+    if isinstance(x, dict):
+        return {k: _num(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_num(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def write_report(out, causes: list[CauseResult], base_errors: dict, structure: dict, meta: dict) -> dict:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    causes = sorted(causes, key=lambda c: c.gain, reverse=True)
+    v = verdict(causes)
+    rep = {"base_error": base_errors.get("brdf"), "base_errors": base_errors, "verdict": v,
+           "penalty": {"gain_threshold": GAIN_THRESHOLD, "per_extra_parameter": PARAM_PENALTY,
+                       "rule": "significant iff held-out error drops in every fold and the pooled relative gain "
+                               "exceeds gain_threshold + per_extra_parameter * extra parameters"},
+           "causes": [c.to_json() for c in causes], "residual_structure": structure, "meta": meta}
+    rep = _num(rep)
+    (out / "report.json").write_text(json.dumps(rep, indent=1))
+    files = _plots(out, structure, causes)
+    L = ["# glossrig diagnose report", "", f"Sample: `{meta.get('sample')}`  ", f"Reference: `{meta.get('reference')}`  ",
+         f"Material (Ward fit, luminance): {meta.get('material')}", "",
+         f"## Verdict: **{v}**", ""]
+    if v == "none":
+        L.append("No cause lowers the held-out error by more than the stated threshold in every fold: "
+                 "no significant discrepancy between the measurement and the model.")
+    else:
+        w = next(c for c in causes if c.name == v)
+        L.append(f"`{v}` lowers the held-out error of the {w.space}-space model from {w.base_error:.4g} to "
+                 f"{w.error:.4g} (gain {w.gain:.1%}); parameters {json.dumps(_num(w.params))} "
+                 f"+- {json.dumps(_num(w.stderr))}.")
+    L += ["", "Base held-out errors (mean squared normalised residual): "
+          + ", ".join(f"{k} {val:.4g}" for k, val in base_errors.items()), "",
+          f"Penalty: a cause is significant when its held-out error is lower in every fold and the pooled gain "
+          f"exceeds {GAIN_THRESHOLD:.1%} + {PARAM_PENALTY:.1%} per extra parameter.", "",
+          "| cause | space | gain | threshold | significant | params | note |", "|---|---|---|---|---|---|---|"]
+    for c in causes:
+        p = {k: val for k, val in _num(c.params).items() if k != "fold_estimates"}
+        L.append(f"| {c.name} | {c.space} | {c.gain:.2%} | {c.threshold:.2%} | {c.significant} | "
+                 f"`{json.dumps(p)}` | {c.note} |")
+    L += ["", "## Causes and their physics", ""]
+    for c in causes:
+        L += [f"* **{c.name}**: {c.doc}"]
+    L += ["", "## Residual structure", ""]
+    for f in files:
+        L.append(f"![{f}]({f})")
+    (out / "report.md").write_text("\n".join(L) + "\n")
+    return rep

@@ -1,0 +1,144 @@
+"""glossrig diagnose (issue 7). Fast tests: frame-space causes hidden in synthetic raw
+stacks (photon-transfer noise, clipping, two LEDs), where the truth is known exactly;
+the slow test runs the whole command on twin captures with effects hidden by
+rewriting the DNG raw values outside the twin."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from glossrig.core.diagnose.data import FrameData, LedFrames
+from glossrig.core.diagnose.frames import frame_causes
+from glossrig.core.errors import InputError
+
+from conftest import RIG
+
+BLACK, WHITE, E_PER_DN, READ = 600.0, 15520.0, 0.6875, 4.4
+
+
+def synthetic_frames(seed, black_offset=0.0, nonlin=0.0, drift=0.0) -> FrameData:
+    rng = np.random.default_rng(seed)
+    t = 0.00025 * 2.0 ** np.arange(16)
+    leds = []
+    for k, led in enumerate((6, 9)):
+        h, w = 60, 80
+        rate = np.exp(rng.uniform(np.log(20), np.log(2e6), (h, w)))      # DN/s above black
+        times = 600.0 * k + np.cumsum(t + 9.0)
+        tau = (times - times.mean()) / 60.0
+        x = rate[None] * t[:, None, None] * (1 + drift * tau)[:, None, None]
+        x = x + rng.normal(0.0, 1.0, x.shape) * np.sqrt(x / E_PER_DN + READ ** 2)   # no clip at black
+        x = np.minimum(x, WHITE - BLACK)                          # full well
+        x = x * (1 - nonlin * x / (WHITE - BLACK))
+        dn = np.clip(np.round(BLACK + black_offset + x), 0, WHITE).astype(np.float32)
+        leds.append(LedFrames(led, 0.0, dn, t, times, np.full((h, w), BLACK), (0, 0)))
+    return FrameData(leds, WHITE, E_PER_DN, READ)
+
+
+def winner(causes):
+    sig = [c for c in causes if c.significant]
+    return max(sig, key=lambda c: c.gain) if sig else None
+
+
+def test_null_frames_give_no_cause():
+    causes = frame_causes(synthetic_frames(1))
+    assert winner([c for c in causes if c.space == "frames"]) is None, [(c.name, c.gain) for c in causes]
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_black_level_offset_found_with_magnitude(seed):
+    b = float(np.random.default_rng(seed).uniform(3, 15))
+    causes = frame_causes(synthetic_frames(seed, black_offset=b))
+    w = winner(causes)
+    assert w is not None and w.name == "black_level_offset"
+    assert abs(w.params["b_dn"] - b) < 1.0, (w.params, b)
+
+
+def test_sensor_nonlinearity_found_with_magnitude():
+    c = float(np.random.default_rng(4).uniform(0.02, 0.06))
+    causes = frame_causes(synthetic_frames(4, nonlin=c))
+    w = winner(causes)
+    assert w is not None and w.name == "sensor_nonlinearity"
+    assert abs(w.params["c"] - c) < 0.25 * c, (w.params, c)
+
+
+def test_bad_fit_file_names_the_file(tmp_path):
+    from glossrig.core.diagnose import load_fit
+
+    p = tmp_path / "fit.json"
+    p.write_text('{"luminance": {"rho_d": 1}}')
+    with pytest.raises(InputError, match="fit.json"):
+        load_fit(p)
+
+
+def test_rewrite_refuses_unknown_effect(tmp_path):
+    from glossrig.core.diagnose.hide import rewrite_capture
+
+    with pytest.raises(InputError, match="can only rewrite"):
+        rewrite_capture(tmp_path, tmp_path / "x", "vignetting", 0.1)
+
+
+# ----------------------------------------------------------------- end to end (slow)
+
+def glossrig(*args, check=True):
+    r = subprocess.run([sys.executable, "-m", "glossrig.cli.main", *map(str, args)], capture_output=True, text=True)
+    if check and r.returncode != 0:
+        raise AssertionError(f"glossrig {args[0]} failed:\n{r.stderr[-3000:]}")
+    return r
+
+
+@pytest.fixture(scope="module")
+def chain(tmp_path_factory):
+    d = tmp_path_factory.mktemp("diagnose")
+    sim = ("--rig", RIG, "--repeats", 1, "--scale", 0.25, "--no-progress", "--rotations", 0)
+    glossrig("simulate", "--rig", RIG, "--target", "checkerboard", "--views", 8, "--scale", 0.25, "--seed", 4,
+             "--no-progress", "--out", d / "checker")
+    glossrig("calibrate", "camera", d / "checker", "--out", d / "camera.json")
+    glossrig("simulate", *sim, "--material", "transparency_sheet", "--leds", "6,9", "--seed", 5, "--out", d / "spec")
+    glossrig("calibrate", "lamps", d / "spec", "--camera", d / "camera.json", "--out", d / "lamps.json",
+             "--no-progress")
+    glossrig("simulate", *sim, "--material", "lambert:0.8", "--leds", "6,9", "--seed", 6, "--out", d / "ref")
+    glossrig("simulate", *sim, "--material", "sample_2_6", "--leds", "6,9", "--seed", 7, "--ideal",
+             "--out", d / "null")
+    return d
+
+
+def _diagnose(chain, cap, out):
+    glossrig("diagnose", cap, "--reference", chain / "ref", "--camera", chain / "camera.json", "--lamps",
+             chain / "lamps.json", "--out", out, "--no-progress")
+    return json.loads((out / "report.json").read_text())
+
+
+@pytest.mark.slow
+@pytest.mark.mitsuba
+def test_end_to_end_hidden_outside_the_twin(chain):
+    from glossrig.core.diagnose.hide import rewrite_capture
+
+    rep = _diagnose(chain, chain / "null", chain / "rep_null")
+    assert rep["verdict"] == "none", rep["causes"][:3]
+    assert (chain / "rep_null" / "report.md").exists()
+    gains = [c["gain"] for c in rep["causes"]]
+    assert gains == sorted(gains, reverse=True)
+    b = float(np.random.default_rng(11).uniform(4, 15))
+    rewrite_capture(chain / "null", chain / "black", "black_level_offset", round(b))
+    rep = _diagnose(chain, chain / "black", chain / "rep_black")
+    assert rep["verdict"] == "black_level_offset"
+    assert abs(rep["causes"][0]["params"]["b_dn"] - round(b)) < 1.5
+    c = float(np.random.default_rng(12).uniform(0.02, 0.05))
+    rewrite_capture(chain / "null", chain / "nonlin", "sensor_nonlinearity", c)
+    rep = _diagnose(chain, chain / "nonlin", chain / "rep_nonlin")
+    assert rep["verdict"] == "sensor_nonlinearity"
+    assert abs(rep["causes"][0]["params"]["c"] - c) < 0.3 * c
+
+
+@pytest.mark.slow
+@pytest.mark.mitsuba
+def test_reference_of_another_rotation_set_is_refused(chain, tmp_path):
+    glossrig("simulate", "--rig", RIG, "--repeats", 1, "--scale", 0.25, "--no-progress", "--rotations", 45,
+             "--material", "lambert:0.8", "--leds", "6,9", "--seed", 8, "--out", tmp_path / "ref45")
+    r = glossrig("diagnose", chain / "null", "--reference", tmp_path / "ref45", "--camera", chain / "camera.json",
+                 "--lamps", chain / "lamps.json", "--out", tmp_path / "rep", "--no-progress", check=False)
+    assert r.returncode != 0 and "reference lacks" in r.stderr
