@@ -158,3 +158,23 @@ def test_bad_input_clear_errors(tmp_path):
     assert (tmp_path / "full" / "x").read_text() == "keep me"
     for d in "abcd":
         assert not (tmp_path / d / "capture.json").exists()
+
+
+def test_measured_rgl_material_simulates(tmp_path):
+    """A real measured BRDF (RGL, Dupuy & Jakob 2018) through Mitsuba's `measured` plugin;
+    negative radiance from its RGB interpolation is clamped and counted in the truth."""
+    from conftest import SHARED
+
+    out = tmp_path / "cap"
+    r = subprocess.run([sys.executable, "-m", "glossrig.cli.main", "simulate", "--rig", str(RIG), "--material",
+                        f"measured:{SHARED / 'data/rgl/vch_golden_yellow_rgb.bsdf'}", "--leds", "9", "--rotations", "0",
+                        "--scale", "0.08", "--seed", "1", "--no-progress", "--out", str(out)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["material"]["kind"] == "measured"
+    w, h = truth["image_size"]
+    assert all(v < 0.02 * w * h for v in truth["negative_radiance_pixels_clamped"].values())
+    man = load_manifest(out)
+    longest = max(man.select("sequence"), key=lambda im: im.exposure_s)
+    assert linearize(read_raw(out / longest.file)).max() == 1.0      # the sample is lit and seen

@@ -59,6 +59,7 @@ class VirtualRig:
         self._vignette = self.effects.vignetting_factor(self.lens.size, self.lens.K)
         self._hot = self.effects.hot_pixel_mask(self.lens.size, seed)
         self._cache: dict[tuple, np.ndarray] = {}
+        self.clamped_pixels: dict[tuple, int] = {}
         self.rotation = 0.0
         self.on: list[int] = []
         self.clock_s = 0.0
@@ -123,6 +124,13 @@ class VirtualRig:
                 self.params["sample.bsdf.tangent_rotation"] = rot
             self.params.update()
             img = self.lens.apply(render_array(self.scene, seed=self.seed * 1000 + led_id))
+            neg = img < 0
+            if neg.any():
+                # Mitsuba's `measured` plugin (RGL RGB data, Dupuy & Jakob 2018) can return
+                # negative values where its RGB interpolation overshoots near grazing angles;
+                # radiance cannot be negative, so these are clamped and counted in the truth.
+                self.clamped_pixels[(led_id, self.rotation)] = int(neg.any(axis=-1).sum())
+                np.maximum(img, 0.0, out=img)
             f = self.effects.emission_factor(led_id, pos, self.points_mm())
             if f is not None:
                 img *= f[..., None]
@@ -159,6 +167,7 @@ class VirtualRig:
             "sample_rotation_offset_deg": self.effects.get("sample_rotation_offset"),
             "effects": self.effects.to_json(),
             "shot_overhead_s": SHOT_OVERHEAD_S, "clock_start": T0.isoformat(),
+            "negative_radiance_pixels_clamped": {f"led{k[0]}_rot{k[1]:g}": v for k, v in self.clamped_pixels.items()},
         }
 
 
