@@ -183,8 +183,11 @@ class EffectState:
                  hot: np.ndarray | None) -> np.ndarray:
         """Sensor-level effects on a float DN mosaic (before the final rounding/clipping)."""
         if self.get("sensor_nonlinearity") > 0:
-            x = np.clip(dn - black, 0, None)
-            dn = black + x * (1.0 - self.get("sensor_nonlinearity") * x / (white - black))
+            # compress only within the sensor's range: above white the pixel is saturated
+            # anyway (it is clipped afterwards), and the quadratic must not fold back there
+            rng = white - black
+            x = np.clip(dn - black, 0, rng)
+            dn = np.where(dn - black >= rng, dn, black + x * (1.0 - self.get("sensor_nonlinearity") * x / rng))
         if self.get("black_level_offset") != 0:
             dn = dn + self.get("black_level_offset")
         if hot is not None:
