@@ -82,7 +82,8 @@ def test_sensor_level_effects(rig):
     x = out - black
     assert x[0, 3] == pytest.approx(14000 * (1 - 0.05 * 14000 / (white - 600)))
     assert np.all(x[:, 1:] < dn[:, 1:] - black[:, 1:])
-    over = e.apply_dn(black + np.array([[1e5, 5e5]]), black[:1, :2], white, 1.0, 0.7, None)
+    b2 = np.full((1, 2), 600.0)
+    over = e.apply_dn(b2 + np.array([[1e5, 5e5]]), b2, white, 1.0, 0.7, None)
     assert np.all(over >= white)          # far beyond white stays saturated, never folds back dark
     e = EffectState({"black_level_offset": 7.0}, seed=0, led_ids=[1])
     assert np.allclose(e.apply_dn(dn.copy(), black, white, 1.0, 0.7, None) - dn, 7.0)
