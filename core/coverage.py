@@ -228,6 +228,14 @@ def bin_codes(theta_in, theta_out, phi_in, phi_out) -> dict[str, np.ndarray]:
             "iso_literal": pd.unique(tt * 360 + literal)}
 
 
+def shift_aniso(codes: np.ndarray, rotation_deg: int) -> np.ndarray:
+    """Anisotropic bins of rotation 0 moved to a whole-degree sample rotation
+    (both azimuth bins minus the rotation, modulo 360)."""
+    ti, to, pi, po = decode_aniso(codes)
+    r = int(rotation_deg)
+    return ((ti * _TO + to) * _P + (pi - r) % _P) * _P + (po - r) % _P
+
+
 def decode_aniso(codes: np.ndarray):
     codes = np.asarray(codes, np.int64)
     po = codes % _P
@@ -304,15 +312,24 @@ def collect(rig, led_ids: Sequence[int] | None = None, rotations: Sequence[float
             data.n_samples[(f, led_id)] = int(m.sum())
             hist = np.bincount(_floor_bins(ti, _T) * _TO + _floor_bins(to, _TO), minlength=_T * _TO)
             data.theta_hist[(f, led_id)] = hist.reshape(_T, _TO)
+            c0 = None
             for rot in rotations:
+                if not printed and float(rot).is_integer() and c0 is not None:
+                    # floor(phi - r) = floor(phi) - r for whole degrees: shift the bins of rotation 0
+                    data.aniso[(f, led_id, rot)] = shift_aniso(c0, int(rot))
+                    continue
                 ri, ro = rotate_azimuth(pi, rot), rotate_azimuth(po, rot)
                 if printed:
                     ri, ro = printed_azimuth(ri), printed_azimuth(ro)
                 c = bin_codes(ti, to, ri, ro)
                 data.aniso[(f, led_id, rot)] = c["aniso"]
-                if rot == rotations[0]:     # |phi_in - phi_out| does not depend on the rotation
+                if not printed and rot == 0.0:
+                    c0 = c["aniso"]
+                if (f, led_id, "folded") not in data.iso:   # |phi_in - phi_out| does not depend on the rotation
                     data.iso[(f, led_id, "folded")] = c["iso_folded"]
                     data.iso[(f, led_id, "literal")] = c["iso_literal"]
+                if not printed and c0 is None:
+                    c0 = bin_codes(ti, to, pi, po)["aniso"]
     return data
 
 

@@ -201,3 +201,18 @@ def test_cli_coverage_bad_rig(tmp_path, capsys):
 
     assert main(["design", "coverage", "--rig", str(tmp_path / "none.toml"), "--out", str(tmp_path / "o")]) == 2
     assert "rig file not found" in capsys.readouterr().err
+
+
+def test_shifted_rotation_bins_equal_direct_binning(rig, pixels, data):
+    """collect() moves the rotation-0 bins for whole-degree rotations; that is
+    exactly what binning the rotated azimuths gives."""
+    a = cov.direction_angles(pixels, rig.led(6).position)
+    m = a["lit"]
+    for rot in (-45.0, 45.0, 90.0):
+        direct = cov.bin_codes(a["theta_in"][m], a["theta_out"][m], cov.rotate_azimuth(a["phi_in"][m], rot),
+                               cov.rotate_azimuth(a["phi_out"][m], rot))["aniso"]
+        assert np.array_equal(np.sort(direct), np.sort(data.aniso[("lit", 6, rot)]))
+    half = cov.collect(rig, led_ids=[6], rotations=[12.5], pixels=pixels, filters=("lit",))
+    direct = cov.bin_codes(a["theta_in"][m], a["theta_out"][m], cov.rotate_azimuth(a["phi_in"][m], 12.5),
+                           cov.rotate_azimuth(a["phi_out"][m], 12.5))["aniso"]
+    assert np.array_equal(np.sort(direct), np.sort(half.aniso[("lit", 6, 12.5)]))

@@ -1,23 +1,24 @@
 """Regenerate validation/design (issue 8: coverage and geometry-based design).
 
     .venv/bin/python validation/design/run.py            # everything (about an hour on 2 busy cores)
-    .venv/bin/python validation/design/run.py coverage   # one step: coverage | optimise | check
+    .venv/bin/python validation/design/run.py optimise   # one step: coverage | optimise | one_process | compare
 
 Steps (each a glossrig command, printed before it runs):
 
-coverage  glossrig design coverage of the thesis rig at image scales 1, 0.5 and
-          0.25 and camera distances 450 and 550 mm -> validation/design/coverage/
+coverage  glossrig design coverage of the thesis rig at image scales 1 and 0.25,
+          camera distances 450 and 550 mm at 0.25 -> validation/design/coverage/
 optimise  glossrig design optimise, 16 LEDs, on a local Dask cluster with two
           workers -> scenes/optimised_rig.toml and validation/design/optimise/
-check     the same optimisation in one process (--workers 0); the two rig files
-          and design results must be identical -> validation/design/dask_check.json
+one_process  the same optimisation in one process (--workers 0)
+          -> validation/design/one_process/
+compare   the two rig files and design results must be identical
+          -> validation/design/dask_check.json
 """
 from __future__ import annotations
 
 import json
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -37,7 +38,7 @@ def sh(args: list[str]) -> float:
 
 def coverage() -> None:
     sh(["design", "coverage", "--rig", "scenes/thesis_rig.toml", "--out", "validation/design/coverage",
-        "--scales", "1.0,0.5,0.25", "--camera-distances", "450,550"])
+        "--scales", "1.0,0.25", "--camera-distances", "450,550"])
 
 
 def optimise() -> float:
@@ -45,43 +46,45 @@ def optimise() -> float:
                           "--workers", "2", "--force"])
 
 
-def _comparable(design_json: Path) -> dict:
-    d = json.loads(design_json.read_text())["design"]
+def one_process() -> float:
+    return sh(OPTIMISE + ["--out", "validation/design/one_process/optimised_rig.toml", "--report",
+                          "validation/design/one_process", "--workers", "0", "--final-scale", "0.1", "--force"])
+
+
+def _design(path: Path) -> dict:
+    d = json.loads(path.read_text())["design"]
     return {k: v for k, v in d.items() if k not in ("runner", "timings_s")}
 
 
-def check(dask_seconds: float | None = None) -> None:
-    with tempfile.TemporaryDirectory() as tmp:
-        t = sh(OPTIMISE + ["--out", f"{tmp}/one_process.toml", "--report", f"{tmp}/report", "--workers", "0",
-                           "--final-scale", "0.1"])
-        one_rig = Path(f"{tmp}/one_process.toml").read_text()
-        one = _comparable(Path(f"{tmp}/report/design.json"))
+def compare() -> None:
+    """The Dask and one-process sweeps must give the same design, bit for bit."""
+    one_rig = (HERE / "one_process" / "optimised_rig.toml").read_text()
     dask_rig = (ROOT / "scenes" / "optimised_rig.toml").read_text()
-    dask_json = json.loads((HERE / "optimise" / "design.json").read_text())["design"]
-    dask = {k: v for k, v in dask_json.items() if k not in ("runner", "timings_s")}
+    one = _design(HERE / "one_process" / "design.json")
+    dask = _design(HERE / "optimise" / "design.json")
+    runs = {name: json.loads((HERE / sub / "design.json").read_text())["design"]
+            for name, sub in (("dask", "optimise"), ("one_process", "one_process"))}
     out = {"rig_files_identical": one_rig == dask_rig, "design_results_identical": one == dask,
-           "dask": {"runner": dask_json["runner"], "timings_s": dask_json["timings_s"], "wall_s": dask_seconds},
-           "one_process": {"runner": "one process", "wall_s": t},
+           "runs": {k: {"runner": v["runner"], "timings_s": v["timings_s"]} for k, v in runs.items()},
            "command_dask": "glossrig " + " ".join(OPTIMISE + ["--out", "scenes/optimised_rig.toml", "--workers", "2"]),
-           "command_one_process": "glossrig " + " ".join(OPTIMISE + ["--out", "ONE.toml", "--workers", "0"])}
+           "command_one_process": "glossrig " + " ".join(OPTIMISE + ["--out", "validation/design/one_process/"
+                                                                     "optimised_rig.toml", "--workers", "0"])}
     (HERE / "dask_check.json").write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps(out, indent=2))
     if not (out["rig_files_identical"] and out["design_results_identical"]):
         sys.exit("Dask and one-process sweeps differ")
 
 
+STEPS = {"coverage": coverage, "optimise": optimise, "one_process": one_process, "compare": compare}
+
+
 def main(argv: list[str]) -> None:
-    steps = argv or ["coverage", "optimise", "check"]
-    bad = [s for s in steps if s not in ("coverage", "optimise", "check")]
+    steps = argv or list(STEPS)
+    bad = [s for s in steps if s not in STEPS]
     if bad:
-        sys.exit(f"unknown step(s) {bad}; choose from coverage, optimise, check")
-    dask_s = None
-    if "coverage" in steps:
-        coverage()
-    if "optimise" in steps:
-        dask_s = optimise()
-    if "check" in steps:
-        check(dask_s)
+        sys.exit(f"unknown step(s) {bad}; choose from {', '.join(STEPS)}")
+    for s in steps:
+        STEPS[s]()
 
 
 if __name__ == "__main__":
