@@ -13,11 +13,15 @@ rendering):
   (:mod:`glossrig.core.fisher`): for each material the geometric mean of the
   relative standard errors from the Fisher information.
 
-    score = ln(C / C_ref) - lambda * mean_m ln(E_m / E_m,ref)
+    score = ln(C / C_ref) + w_iso ln(C_iso / C_iso,ref) - lambda * mean_m ln(E_m / E_m,ref)
 
 with the thesis rig (all its LEDs, its rotations) as the reference, so the
 thesis scores 0 and a design with twice the coverage and the same errors
-scores ln 2.
+scores ln 2. C_iso is the isotropic coverage (theta_in, theta_out,
+|phi_in - phi_out| folded, lit samples): both metrics of thesis 7.1.3 count,
+and without it the anisotropic metric alone favours LEDs close to the camera
+(many samples near the pole theta = 0, where 1-degree azimuth bins are small)
+and gives up the large lamp-camera angles.
 
 Search. Every LED's contribution to both terms is additive: the coverage is a
 union of per-LED bin sets (a sample rotation r shifts both azimuth bins by -r,
@@ -501,6 +505,8 @@ class Pool:
     ref_coverage: float = 1.0
     ref_errors: np.ndarray | None = None
     priors: np.ndarray | None = None
+    iso_weight: float = 0.0
+    ref_iso: float = 1.0
 
     def __post_init__(self):
         self.priors = np.stack([fi.weak_prior(p) for _, p in self.materials])
@@ -554,13 +560,21 @@ class Pool:
         parts = [self.evals[i].aniso_codes(rotations) for i in leds]
         return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 
-    def score_parts(self, cov_frac: float, errors: np.ndarray) -> float:
+    def iso_bins(self, leds: Sequence[int]) -> int:
+        parts = [self.evals[i].iso for i in leds]
+        return int(len(np.unique(np.concatenate(parts)))) if parts else 0
+
+    def score_parts(self, cov_frac: float, errors: np.ndarray, iso_frac: float | None = None) -> float:
         e = np.mean(np.log(np.asarray(errors) / self.ref_errors))
-        return math.log(max(cov_frac, 1e-300) / self.ref_coverage) - self.lam * float(e)
+        s = math.log(max(cov_frac, 1e-300) / self.ref_coverage) - self.lam * float(e)
+        if self.iso_weight:
+            s += self.iso_weight * math.log(max(iso_frac, 1e-300) / self.ref_iso)
+        return s
 
     def score(self, leds, rotations) -> float:
         c = self.coverage_bins(leds, rotations) / ANISO_TOTAL
-        return self.score_parts(c, self.errors_from_information(self.information(leds, rotations)))
+        iso = self.iso_bins(leds) / ISO_TOTAL if self.iso_weight else None
+        return self.score_parts(c, self.errors_from_information(self.information(leds, rotations)), iso)
 
 
 def _new_bins(codes: np.ndarray, covered: np.ndarray, owner: np.ndarray | None = None, n_sel: int = 0):
@@ -604,11 +618,14 @@ def select_leds(pool: Pool, n: int, rotations, start: list[int] | None = None, f
     ri = pool.rot_idx(rotations)
     cand_info = np.stack([ev.info[ri].sum(axis=0) for ev in pool.evals])   # (N, n_mat, 5, 5)
     cand_codes = [ev.aniso_codes(rotations) for ev in pool.evals]
+    cand_iso = [np.sort(ev.iso) for ev in pool.evals]
     sel = list(start or [])
     trajectory = []
 
     def best_addition(sel_now: list[int], exclude: set[int]) -> tuple[int, float]:
         covered, _ = _state(pool, sel_now, rotations)
+        iso_cov = (np.unique(np.concatenate([pool.evals[i].iso for i in sel_now])) if sel_now
+                   else np.zeros(0, np.int64))
         ok = feasible.copy()
         for i in sel_now:
             ok &= ~pool.conflict[i]
@@ -621,7 +638,12 @@ def select_leds(pool: Pool, n: int, rotations, start: list[int] | None = None, f
         base_I = pool.information(sel_now, rotations)
         errs = pool.batch_errors(base_I[None] + cand_info[idx])
         gains = np.array([_new_bins(cand_codes[i], covered)[0] for i in idx])
-        scores = np.array([pool.score_parts((covered.size + g) / ANISO_TOTAL, e) for g, e in zip(gains, errs)])
+        if pool.iso_weight:
+            iso_g = [(iso_cov.size + _new_bins(cand_iso[i], iso_cov)[0]) / ISO_TOTAL for i in idx]
+        else:
+            iso_g = [None] * idx.size
+        scores = np.array([pool.score_parts((covered.size + g) / ANISO_TOTAL, e, ig)
+                           for g, e, ig in zip(gains, errs, iso_g)])
         k = int(np.argmax(scores))
         return int(idx[k]), float(scores[k])
 
@@ -658,9 +680,11 @@ def select_rotations(pool: Pool, leds: list[int], k: int, start: Sequence[int] |
     codes = {r: np.unique(np.concatenate([pool.evals[i].aniso_codes([r]) for i in leds])) for r in cands}
     info = {r: pool.information(leds, [r]) for r in cands}
 
+    iso = pool.iso_bins(leds) / ISO_TOTAL if pool.iso_weight else None    # no rotation changes it
+
     def sc(rots):
         c = len(np.unique(np.concatenate([codes[r] for r in rots]))) / ANISO_TOTAL
-        return pool.score_parts(c, pool.errors_from_information(sum(info[r] for r in rots)))
+        return pool.score_parts(c, pool.errors_from_information(sum(info[r] for r in rots)), iso)
 
     sel = [int(r) for r in (start or [])][:k]
     while len(sel) < k:
@@ -699,6 +723,7 @@ def greedy_order(pool: Pool, leds: list[int], rotations) -> list[dict]:
                                                                 mount_of(pool.evals[best].position))),
                      "score": pool.score(chosen, rotations),
                      "anisotropic_coverage": pool.coverage_bins(chosen, rotations) / ANISO_TOTAL,
+                     "isotropic_coverage": pool.iso_bins(chosen) / ISO_TOTAL,
                      "geometric_mean_relative_error": {lb: float(e) for (lb, _), e in zip(pool.materials, errs)}})
     return rows
 
@@ -718,6 +743,7 @@ class DesignResult:
     rotations: list[int]
     score: float
     coverage: float
+    iso_coverage: float
     errors: dict[str, float]
     reference: dict
     trajectory: list[float]
@@ -731,6 +757,7 @@ class DesignResult:
         return {"mounts": [dict(zip(("angle_deg", "height_mm", "distance_mm"), mount_of(p))) for p in self.positions],
                 "rotations_deg": list(self.rotations), "score": self.score,
                 "anisotropic_coverage_design_scale": self.coverage,
+                "isotropic_coverage_design_scale": self.iso_coverage,
                 "geometric_mean_relative_error": self.errors, "reference": self.reference,
                 "greedy_trajectory": self.trajectory, "prefixes": self.prefixes, "runner": self.runner,
                 "n_candidates": self.n_candidates, "n_feasible": self.n_feasible, "timings_s": self.timings}
@@ -784,7 +811,7 @@ def _chunks(items: list, size: int) -> list[list]:
 
 
 def optimise(rig, n_leds: int, materials, runner, space: SearchSpace = SearchSpace(),
-             limits: MountingLimits = MountingLimits(), n_rotations: int = 4, lam: float = 1.0,
+             limits: MountingLimits = MountingLimits(), n_rotations: int = 4, lam: float = 1.0, iso_weight: float = 1.0,
              coverage_scale: float = 0.25, fisher_scale: float = 0.25, noise: str = "hdr",
              reference_leds: Sequence[int] | None = None, chunk: int = 16, rounds: int = 3,
              progress: bool = True, log: Callable[[str], None] | None = None) -> DesignResult:
@@ -799,6 +826,8 @@ def optimise(rig, n_leds: int, materials, runner, space: SearchSpace = SearchSpa
         raise InputError(f"number of rotations must lie in [1, {len(space.rotations_deg)}], got {n_rotations}")
     if not (math.isfinite(lam) and lam >= 0):
         raise InputError(f"lambda must be >= 0, got {lam}")
+    if not (math.isfinite(iso_weight) and iso_weight >= 0):
+        raise InputError(f"isotropic-coverage weight must be >= 0, got {iso_weight}")
     ref_rots = [float(r) for r in rig.sample_rotations]
     if any(r != int(r) for r in ref_rots):
         raise InputError(f"the reference rig's rotations must be whole degrees, got {ref_rots}", path=rig.path)
@@ -822,7 +851,7 @@ def optimise(rig, n_leds: int, materials, runner, space: SearchSpace = SearchSpa
     cand_pos = np.array([e.position for e in evals])
     conflict = conflicts(rig, cand_pos, limits)
     pool = Pool(evals=evals + ref_evals, conflict=np.zeros((1, 1), bool), rotations=rotations,
-                materials=list(materials), lam=lam)
+                materials=list(materials), lam=lam, iso_weight=iso_weight)
     nall = len(pool.evals)
     full_conf = np.ones((nall, nall), bool)
     full_conf[:n_feas, :n_feas] = conflict
@@ -831,6 +860,7 @@ def optimise(rig, n_leds: int, materials, runner, space: SearchSpace = SearchSpa
     ref_cov = pool.coverage_bins(ref_idx, ref_rots) / ANISO_TOTAL
     ref_err = pool.errors_from_information(pool.information(ref_idx, ref_rots))
     pool.ref_coverage, pool.ref_errors = ref_cov, ref_err
+    pool.ref_iso = pool.iso_bins(ref_idx) / ISO_TOTAL
     say(f"reference {rig.name} ({len(ref_ids)} LEDs, rotations {ref_rots}): anisotropic coverage "
         f"{100 * ref_cov:.4f} % at scale {coverage_scale:g}, errors "
         + ", ".join(f"{lb} {e:.3g}" for (lb, _), e in zip(materials, ref_err)))
@@ -852,13 +882,15 @@ def optimise(rig, n_leds: int, materials, runner, space: SearchSpace = SearchSpa
     order = sorted(leds, key=lambda i: (mount_of(pool.evals[i].position)[0], mount_of(pool.evals[i].position)[1]))
     score = pool.score(order, rots)
     c = pool.coverage_bins(order, rots) / ANISO_TOTAL
+    c_iso = pool.iso_bins(order) / ISO_TOTAL
     errs = pool.errors_from_information(pool.information(order, rots))
     prefixes = greedy_order(pool, order, rots)
     t3 = time.perf_counter()
     ref = {"leds": ref_ids, "rotations_deg": ref_rots, "anisotropic_coverage_design_scale": ref_cov,
+           "isotropic_coverage_design_scale": pool.ref_iso,
            "geometric_mean_relative_error": {lb: float(e) for (lb, _), e in zip(materials, ref_err)}}
     return DesignResult(positions=np.array([pool.evals[i].position for i in order]), rotations=list(rots),
-                        score=float(score), coverage=float(c),
+                        score=float(score), coverage=float(c), iso_coverage=float(c_iso),
                         errors={lb: float(e) for (lb, _), e in zip(materials, errs)}, reference=ref,
                         trajectory=[float(x) for x in traj], prefixes=prefixes, runner=getattr(runner, "name", "?"),
                         n_candidates=len(mounts), n_feasible=n_feas,

@@ -214,11 +214,12 @@ def _small_pool(rig, setup, n_extra=10):
     evals = D.evaluate_chunk(setup, pos + ref)
     n = len(pos)
     pool = D.Pool(evals=evals, conflict=np.ones((len(evals), len(evals)), bool), rotations=setup.rotations,
-                  materials=MATS, lam=1.0)
+                  materials=MATS, lam=1.0, iso_weight=1.0)
     pool.conflict[:n, :n] = D.conflicts(rig, np.array(pos))
     ref_idx = list(range(n, len(evals)))
     pool.ref_coverage = pool.coverage_bins(ref_idx, [-45, 0, 45, 90]) / D.ANISO_TOTAL
     pool.ref_errors = pool.errors_from_information(pool.information(ref_idx, [-45, 0, 45, 90]))
+    pool.ref_iso = pool.iso_bins(ref_idx) / D.ISO_TOTAL
     ok = np.zeros(len(evals), bool)
     ok[:n] = True
     return pool, ok, ref_idx
@@ -286,6 +287,8 @@ def test_optimise_refuses_bad_input(rig):
         D.optimise(rig, 17, MATS, D.LocalRunner(), **TINY)
     with pytest.raises(InputError, match="lambda"):
         D.optimise(rig, 2, MATS, D.LocalRunner(), lam=-1.0, **TINY)
+    with pytest.raises(InputError, match="isotropic"):
+        D.optimise(rig, 2, MATS, D.LocalRunner(), iso_weight=float("nan"), **TINY)
     with pytest.raises(InputError, match="whole degrees"):
         D.SearchSpace(rotations_deg=(0, 22.5))
     with pytest.raises(InputError, match="extended-Ward"):

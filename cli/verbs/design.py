@@ -288,6 +288,8 @@ def add_optimise_arguments(p) -> None:
     p.add_argument("--rotation-step", type=int, default=15, help="candidate sample-rotation step, whole degrees (default 15)")
     p.add_argument("--lambda", dest="lam", type=float, default=1.0,
                    help="weight of the expected-error term against the coverage term (default 1)")
+    p.add_argument("--iso-weight", type=float, default=1.0,
+                   help="weight of the isotropic-coverage term (default 1; 0 = anisotropic coverage and errors only)")
     p.add_argument("--scale", type=float, default=0.25, help="image scale of the sweep (default 0.25)")
     p.add_argument("--noise", default="hdr", help="noise model: hdr[:LED_REL] (default) or relative[:REL]")
     p.add_argument("--final-scale", type=float, default=1.0,
@@ -324,7 +326,7 @@ def run_optimise(args) -> int:
     say(f"sweeping on {runner.name}")
     try:
         res = D.optimise(rig, args.leds, materials, runner, space=space, limits=limits, n_rotations=args.rotations,
-                         lam=args.lam, coverage_scale=args.scale, fisher_scale=args.scale, noise=args.noise,
+                         lam=args.lam, iso_weight=args.iso_weight, coverage_scale=args.scale, fisher_scale=args.scale, noise=args.noise,
                          progress=not args.quiet, log=say)
     finally:
         runner.close()
@@ -332,7 +334,7 @@ def run_optimise(args) -> int:
     if problems:
         raise InputError("the optimised design breaks the mounting limits: " + "; ".join(problems))
     header = (f"# Optimised rig (glossrig design optimise, thesis 9.1): {args.leds} LEDs and "
-              f"{args.rotations} sample rotations chosen for anisotropic BRDF-space coverage (thesis 7.1.3) and\n"
+              f"{args.rotations} sample rotations chosen for anisotropic and isotropic BRDF-space coverage (thesis 7.1.3) and\n"
               f"# the expected extended-Ward parameter error (Fisher information) of {args.materials}.\n"
               f"# Everything but the LED table, sample rotations, name and description is copied from {rig.path}.\n"
               f"# LEDs mount on printed vertical posts with sliding carriages (heights -40..120 mm), see\n"
@@ -409,8 +411,8 @@ def design_markdown(out: dict, materials, ref_rig, new_rig, args) -> str:
              f"{d['n_candidates']} candidate mounts, {d['n_feasible']} within the mounting limits; sweep "
              f"{d['timings_s']['sweep']:.0f} s, selection {d['timings_s']['selection']:.0f} s).")
     L.append("")
-    L.append(f"Score (glossrig.core.design): ln(C/C_thesis) - {args.lam:g} * mean ln(E/E_thesis), C the anisotropic "
-             f"coverage and E the geometric mean of the relative standard errors of each target material "
+    L.append(f"Score (glossrig.core.design): ln(C/C_thesis) + {args.iso_weight:g} * ln(C_iso/C_iso,thesis) - {args.lam:g} "
+             f"* mean ln(E/E_thesis), C the anisotropic and C_iso the isotropic coverage, and E the geometric mean of the relative standard errors of each target material "
              f"({', '.join(lb for lb, _ in materials)}), both at image scale {args.scale:g}; noise model {args.noise!r}. "
              f"Optimised score {d['score']:+.3f} (thesis 0).")
     L += ["", f"## Coverage at image scale {out['final_scale']:g} (camera 500 mm)", "",
