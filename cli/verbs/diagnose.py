@@ -25,6 +25,8 @@ def add_arguments(p) -> None:
     p.add_argument("--lamps", required=True, help="lamp positions (glossrig calibrate lamps)")
     p.add_argument("--fit", default=None, help="a material fit from another capture (else fitted here)")
     p.add_argument("--albedo", type=float, default=0.8, help="reference albedo")
+    p.add_argument("--reference-brdf", default=None,
+                   help="the reference's measured BRDF (RGL .bsdf): tests the non-Lambertian reference cause")
     p.add_argument("--out", required=True, help="report folder")
     p.add_argument("--no-progress", action="store_true")
 
@@ -32,9 +34,14 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     from glossrig.core.diagnose import diagnose
 
+    ref = None
+    if args.reference_brdf:
+        from glossrig.twin.measured_brdf import MeasuredBRDF
+
+        ref = MeasuredBRDF(args.reference_brdf).table
     rep = diagnose(args.sample, args.reference, args.camera, args.lamps, args.out, fit=args.fit,
                    albedo=args.albedo, progress=not args.no_progress,
-                   log=(lambda *a: None) if args.no_progress else print)
+                   log=(lambda *a: None) if args.no_progress else print, reference_brdf=ref)
     print(f"verdict: {rep['verdict']}")
     for c in rep["causes"][:5]:
         print(f"  {c['name']:24s} {c['space']:7s} gain {c['gain']:+.2%}  significant={c['significant']}")

@@ -44,7 +44,10 @@ def load_fit(path):
 
 
 def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: float = 0.8,
-             progress: bool = False, log=print) -> dict:
+             progress: bool = False, log=print, reference_brdf=None) -> dict:
+    """``reference_brdf``: callable(samples table) -> (n, 3) RGB BRDF of the reference at the
+    rows' angles (e.g. :meth:`glossrig.twin.measured_brdf.MeasuredBRDF.table`), enabling the
+    reference_brdf cause."""
     from glossrig.core.fit import fit_samples
     from glossrig.core.intrinsics import load_camera
     from glossrig.core.lamps import load_lamps
@@ -54,6 +57,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     cam = load_camera(camera)
     lp = load_lamps(lamps)
     data = load_brdf(sample_dir, reference_dir, cam, lp, albedo=albedo, progress=progress)
+    data.reference_brdf = reference_brdf
     log(f"measured {len(data.table)} BRDF samples ({time.time() - t0:.0f} s)")
     t = data.table
     if fit is not None:

@@ -284,7 +284,9 @@ def brdf_causes(m: BrdfModel) -> list[CauseResult]:
 
     r = _scalar_cause(m, "fresnel", doc, make_fres, (1.1, 3.0), "n", "refractive index", grid_n=15)
     out.append(r)
-    return out
+    from .material_models import material_causes     # GGX lobe, the reference's own BRDF
+
+    return out + material_causes(m)
 
 
 def _flat(profile) -> bool:

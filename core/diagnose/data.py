@@ -39,6 +39,8 @@ class BrdfData:
     patch_uv: dict                # rotation -> (u, v) of the white patch centre (full image)
     lamps: dict                   # LED id -> lamp position (holder frame, mm)
     material_fixed: bool = False  # True when the material fit comes from another capture
+    camera: tuple = None          # (K, distortion) of the camera calibration
+    reference_brdf: object = None  # callable(table) -> (n, 3) RGB BRDF of the reference, when known
 
 
 @dataclass
@@ -69,12 +71,16 @@ def _lum(df, prefix=""):
     return LUMA[0] * df[prefix + "r"] + LUMA[1] * df[prefix + "g"] + LUMA[2] * df[prefix + "b"]
 
 
-def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progress: bool = False) -> BrdfData:
+def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progress: bool = False,
+              reference: Measured | None = None) -> BrdfData:
     """Measure sample and reference alike and divide them (the pipeline's extraction),
-    keeping the geometry columns the causes need."""
+    keeping the geometry columns the causes need. ``reference`` is the reference capture
+    already measured with the same camera and lamps (a study reuses it across captures)."""
+    from glossrig.core.extract import camera_arrays
+
     check_compatible(sample_dir, reference_dir)
     ms = measure_capture(sample_dir, cam, lamps, progress=progress)
-    mr = measure_capture(reference_dir, cam, lamps, progress=progress)
+    mr = reference if reference is not None else measure_capture(reference_dir, cam, lamps, progress=progress)
     s = ms.table.copy()
     for c in "rgb":
         s[f"S_{c}"] = s[c]
@@ -98,7 +104,8 @@ def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progre
     for rot, g in ms.geometry.items():
         ii, jj = np.nonzero(g.patch_mask)
         patch_uv[rot] = (g.crop[0] + float(jj.mean()), g.crop[1] + float(ii.mean()))
-    return BrdfData(t, ms, albedo, tuple(fr.full_size), (cam.cx, cam.cy), patch_uv, dict(lamps))
+    return BrdfData(t, ms, albedo, tuple(fr.full_size), (cam.cx, cam.cy), patch_uv, dict(lamps),
+                    camera=camera_arrays(cam))
 
 
 def _seconds(ts: str) -> float:
