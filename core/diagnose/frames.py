@@ -37,6 +37,22 @@ def effective_white(dn, white):
     return float(min(white, np.percentile(dn, 99.99)))
 
 
+def unclipped(dn, white):
+    """Exposures of a pixel that are safely below saturation, decided without their own noise.
+
+    Taking ``dn < margin * white`` of the frame itself drops exactly the frames whose noise
+    pushed them up, which biases the longest usable exposure of every pixel low: a fake gain
+    trend along the exposure sequence (measured: -0.0037 / min on a null capture). An exposure
+    is kept when the next longer one (exposures sorted by time, axis 0) is unclipped, so the
+    decision rests on another frame's noise; the longest exposure is kept on its own test.
+    """
+    below = dn < CLIP_MARGIN * white
+    ok = np.empty_like(below)
+    ok[:-1] = below[:-1] & below[1:]
+    ok[-1] = below[-1]
+    return ok
+
+
 class FrameSet:
     """Pixels sampled from each LED's crop: Z (n_exp, P) signal above the stated black."""
 
@@ -54,7 +70,7 @@ class FrameSet:
                 idx = np.sort(rng.choice(idx.size, MAX_PIXELS, replace=False))
             dn = flat[:, idx].astype(np.float64)
             z = dn - lf.black.ravel()[idx][None, :]
-            ok = dn < CLIP_MARGIN * effective_white(lf.dn, fd.white)
+            ok = unclipped(dn, effective_white(lf.dn, fd.white))
             self.Z.append(z)
             self.ok.append(ok)
             self.T.append(lf.exposure_s[:, None] * np.ones((1, idx.size)))
@@ -102,16 +118,25 @@ def _score(fs: FrameSet, model, fold):
 
 
 def _linear_pred(fs, i, M, offset=0.0, gain=None, c=0.0):
+    """Per-pixel rate fitted over mask M; prediction (n_exp, P) of the signal above black.
+
+    Weights come from the *predicted* signal (one re-weighting after a first pass with the
+    observed one): weighting a Poisson-like sample by its own value biases the rate low by
+    about one count per frame, a signal-dependent error that looks like a black offset, a
+    non-linearity and a drift at once (measured on a null capture: b = 0.7 DN, c = 0.004,
+    drift -0.005 / min before; see validation/diagnose/README.md)."""
     Z, T = fs.Z[i], fs.T[i]
-    W = _weights(fs, Z)
-    if c == 0.0:
-        r = _fit_rates(Z, T, W, M, offset, gain)
-        x = r[None, :] * T * (1.0 if gain is None else gain)
-        return offset + x
-    # nonlinear: Gauss-Newton on the per-pixel rate of z = x - c x^2 / range
     G = T if gain is None else T * gain
+    W = _weights(fs, Z)
     r = _fit_rates(Z, T, W, M, offset, gain)
-    for _ in range(4):
+    for it in range(2 if c == 0.0 else 5):
+        if it:
+            x = r[None, :] * G
+            W = _weights(fs, x - c * x * x / fs.range + offset)
+        if c == 0.0:
+            r = _fit_rates(Z, T, W, M, offset, gain)
+            continue
+        # nonlinear: Gauss-Newton step on the per-pixel rate of z = x - c x^2 / range
         x = r[None, :] * G
         f = x - c * x * x / fs.range
         J = G * np.maximum(1 - 2 * c * x / fs.range, 0.2)
@@ -227,7 +252,7 @@ def rate_maps(fd: FrameData):
     out = []
     for lf in fd.leds:
         z = lf.dn.astype(np.float64) - lf.black[None]
-        ok = lf.dn < CLIP_MARGIN * effective_white(lf.dn, fd.white)
+        ok = unclipped(lf.dn, effective_white(lf.dn, fd.white))
         t = lf.exposure_s[:, None, None]
         w = 1.0 / fd.variance(z)
         den = np.sum(np.where(ok, w * t * t, 0.0), axis=0)
