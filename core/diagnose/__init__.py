@@ -44,10 +44,12 @@ def load_fit(path):
 
 
 def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: float = 0.8,
-             progress: bool = False, log=print, reference_brdf=None) -> dict:
+             progress: bool = False, log=print, reference_brdf=None, reference_measured=None,
+             plots: bool = True) -> dict:
     """``reference_brdf``: callable(samples table) -> (n, 3) RGB BRDF of the reference at the
     rows' angles (e.g. :meth:`glossrig.twin.measured_brdf.MeasuredBRDF.table`), enabling the
-    reference_brdf cause."""
+    reference_brdf cause. ``reference_measured``: the reference capture already measured
+    (:func:`glossrig.core.extract.measure_capture`) with the same camera and lamps."""
     from glossrig.core.fit import fit_samples
     from glossrig.core.intrinsics import load_camera
     from glossrig.core.lamps import load_lamps
@@ -56,7 +58,8 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     t0 = time.time()
     cam = load_camera(camera)
     lp = load_lamps(lamps)
-    data = load_brdf(sample_dir, reference_dir, cam, lp, albedo=albedo, progress=progress)
+    data = load_brdf(sample_dir, reference_dir, cam, lp, albedo=albedo, progress=progress,
+                     reference=reference_measured)
     data.reference_brdf = reference_brdf
     log(f"measured {len(data.table)} BRDF samples ({time.time() - t0:.0f} s)")
     t = data.table
@@ -87,4 +90,4 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
             "splits": {"brdf": "leave one LED out (two halves along the cylinder axis with one LED)",
                        "frames": "even / odd exposure index", "pixels": "leave one LED out"},
             "time_s": time.time() - t0}
-    return write_report(out, causes, base, structure, meta)
+    return write_report(out, causes, base, structure, meta, plots=plots)

@@ -79,6 +79,18 @@ class FrameSet:
                             * np.ones((1, idx.size)))
             self.led.append(lf.led)
         self.n_exp = [z.shape[0] for z in self.Z]
+        # Fixed variances (EMVA 1288) from the base model's prediction: a chi^2 whose variance moves
+        # with the prediction, sum (z - mu)^2 / V(mu), is minimised by mu too high by ~1 / (2 K) DN
+        # (Pearson's chi^2 for Poisson counts; K = 0.69 e-/DN here: 0.7 DN). Measured on null
+        # captures, twin and synthetic alike: b = 0.71 DN and a drift of -0.006 / min. With V fixed,
+        # every model is compared by weighted least squares with the same weights.
+        self.V = []
+        for i in range(len(self.Z)):
+            W = 1.0 / fd.variance(self.Z[i])
+            r = _fit_rates(self.Z[i], self.T[i], W, self.ok[i])
+            W = 1.0 / fd.variance(r[None, :] * self.T[i])
+            r = _fit_rates(self.Z[i], self.T[i], W, self.ok[i])
+            self.V.append(fd.variance(r[None, :] * self.T[i]))
 
     def folds(self):
         """Even / odd exposure index: two folds interleaved in exposure time and capture order."""
@@ -101,10 +113,6 @@ def _fit_rates(Z, T, W, M, offset=0.0, gain=None):
     return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
 
 
-def _weights(fs: FrameSet, Z):
-    return 1.0 / fs.fd.variance(Z)
-
-
 def _score(fs: FrameSet, model, fold):
     """Held-out chi^2 (pooled over LEDs) of ``model(i, train_mask) -> prediction (n_exp, P)``."""
     tr, te = fold
@@ -112,39 +120,29 @@ def _score(fs: FrameSet, model, fold):
     for i in range(len(fs.Z)):
         pred = model(i, tr[i] & fs.ok[i])
         m = te[i] & fs.ok[i]
-        var = fs.fd.variance(pred)
-        ss += float(np.sum(np.where(m, (fs.Z[i] - pred) ** 2 / var, 0.0)))
+        ss += float(np.sum(np.where(m, (fs.Z[i] - pred) ** 2 / fs.V[i], 0.0)))
         n += int(m.sum())
     return ss / max(n, 1)
 
 
 def _linear_pred(fs, i, M, offset=0.0, gain=None, c=0.0):
-    """Per-pixel rate fitted over mask M; prediction (n_exp, P) of the signal above black.
-
-    Weights come from the *predicted* signal (one re-weighting after a first pass with the
-    observed one): weighting a Poisson-like sample by its own value biases the rate low by
-    about one count per frame, a signal-dependent error that looks like a black offset, a
-    non-linearity and a drift at once (measured on a null capture: b = 0.7 DN, c = 0.004,
-    drift -0.005 / min before; see validation/diagnose/README.md)."""
+    """Per-pixel rate fitted over mask M (weights 1 / V of :class:`FrameSet`); prediction
+    (n_exp, P) of the signal above black."""
     Z, T = fs.Z[i], fs.T[i]
     G = T if gain is None else T * gain
-    W = _weights(fs, Z)
+    W = 1.0 / fs.V[i]
     r = _fit_rates(Z, T, W, M, offset, gain)
-    for it in range(2 if c == 0.0 else 5):
-        if it:
-            x = r[None, :] * G
-            W = _weights(fs, x - c * x * x / fs.range + offset)
-        if c == 0.0:
-            r = _fit_rates(Z, T, W, M, offset, gain)
-            continue
-        # nonlinear: Gauss-Newton step on the per-pixel rate of z = x - c x^2 / range
+    if c == 0.0:
+        return offset + r[None, :] * G
+    for _ in range(4):
+        # non-linear: Gauss-Newton step on the per-pixel rate of z = x - c x^2 / range
         x = r[None, :] * G
         f = x - c * x * x / fs.range
         J = G * np.maximum(1 - 2 * c * x / fs.range, 0.2)
         num = np.sum(np.where(M, W * J * (Z - offset - f), 0.0), axis=0)
         den = np.sum(np.where(M, W * J * J, 0.0), axis=0)
         step = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
-        r = np.maximum(r + np.clip(step, -0.5 * np.abs(r) - 1.0, 0.5 * np.abs(r) + 1.0), 0.0)
+        r = r + np.clip(step, -0.5 * np.abs(r) - 1.0, 0.5 * np.abs(r) + 1.0)
     x = r[None, :] * G
     return offset + x - c * x * x / fs.range
 
@@ -163,7 +161,7 @@ def _train_cost(fs, pred_fn, fold):
     for i in range(len(fs.Z)):
         M = tr[i] & fs.ok[i]
         pred = pred_fn(i, M)
-        ss += float(np.sum(np.where(M, (fs.Z[i] - pred) ** 2 / fs.fd.variance(pred), 0.0)))
+        ss += float(np.sum(np.where(M, (fs.Z[i] - pred) ** 2 / fs.V[i], 0.0)))
         n += int(M.sum())
     return ss / max(n, 1)
 
@@ -230,7 +228,7 @@ def _drift_cause(fs: FrameSet) -> CauseResult:
             def cost(a, i=i):
                 M = tr[i] & fs.ok[i]
                 pred = _linear_pred(fs, i, M, gain=1 + a * fs.tau[i])
-                return float(np.sum(np.where(M, (fs.Z[i] - pred) ** 2 / fs.fd.variance(pred), 0.0)))
+                return float(np.sum(np.where(M, (fs.Z[i] - pred) ** 2 / fs.V[i], 0.0)))
             a, _, _ = _scalar_fit(cost, bounds, 11)
             slopes.append(a)
         e1 = _score(fs, lambda i, M: _linear_pred(fs, i, M, gain=1 + slopes[i] * fs.tau[i]), fold)

@@ -7,7 +7,8 @@ lean on the twin's own implementation: each DNG of the capture is decoded with
 manifest's checksums are updated. The stated black level is left unchanged.
 
 * ``black_level_offset=b``: every DN + b (the sensor's true black differs by b).
-* ``sensor_nonlinearity=c``: x -> x (1 - c x / (white - black)) for the signal x above black.
+* ``sensor_nonlinearity=c``: x -> x (1 - c x / (white - black)) for the signal x above black
+  (negative read noise left as it is; saturated pixels stay saturated).
 """
 from __future__ import annotations
 
@@ -46,8 +47,11 @@ def rewrite_capture(src, dst, effect: str, value: float) -> Path:
         if effect == "black_level_offset":
             dn = dn + value
         else:
-            x = np.clip(dn - black, 0, None)
-            dn = black + x * (1.0 - value * x / (fr.white - black))
+            # the signal above black, read noise included: compressing max(x, 0) instead would
+            # move every dark pixel's negative noise to 0, a +1.1 DN offset (measured) that then
+            # reads as a black level offset
+            x = dn - black
+            dn = np.where(dn >= fr.white, dn, black + x * (1.0 - value * np.maximum(x, 0) / (fr.white - black)))
         mosaic = np.clip(np.round(dn), 0, fr.white).astype(np.uint16)
         cfa = "".join(CFA_NAMES[int(c)] for c in np.asarray(fr.cfa).ravel())
         im["sha256"] = write_dng(p, mosaic, cfa=cfa, black_level=tuple(int(b) for b in np.asarray(fr.black).ravel()),

@@ -55,7 +55,7 @@ def frame_structure(fs: FrameSet) -> dict:
     for i in range(len(fs.Z)):
         M = fs.ok[i]
         pred = _linear_pred(fs, i, M)
-        r = (fs.Z[i] - pred) / np.sqrt(fs.fd.variance(pred))
+        r = (fs.Z[i] - pred) / np.sqrt(fs.V[i])
         sel = M & (pred > 5)
         rs.append(r[sel])
         xs["exposure_s (log10)"].append(np.log10(fs.T[i][sel]))
