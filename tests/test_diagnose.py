@@ -1,7 +1,12 @@
 """glossrig diagnose (issue 7). Fast tests: frame-space causes hidden in synthetic raw
-stacks (photon-transfer noise, clipping, two LEDs), where the truth is known exactly;
-the slow test runs the whole command on twin captures with effects hidden by
-rewriting the DNG raw values outside the twin."""
+stacks (photon-transfer noise, clipping, two LEDs), and BRDF-space causes hidden in
+synthetic BRDF tables on the rig's nominal geometry (scale 0.125, LEDs 6 and 9) with
+the effects computed by the twin's own catalogue (twin/effects.py) from first
+principles - the ratio of the true to the assumed irradiance at the sample and at the
+white patch - not by the diagnosis code. Each draws a seeded magnitude, runs the
+causes blind and requires the right name first and the magnitude within a stated
+tolerance; null data must give no cause. The slow tests run the whole command on twin
+captures with effects hidden by rewriting the DNG raw values outside the twin."""
 from __future__ import annotations
 
 import json
@@ -20,13 +25,21 @@ from conftest import RIG
 BLACK, WHITE, E_PER_DN, READ = 600.0, 15520.0, 0.6875, 4.4
 
 
-def synthetic_frames(seed, black_offset=0.0, nonlin=0.0, drift=0.0) -> FrameData:
+def synthetic_frames(seed, black_offset=0.0, nonlin=0.0, drift=0.0, hot=0.0, size=(60, 80)) -> FrameData:
+    """Two LEDs' exposure series; ``drift`` = gain slope per minute, ``hot`` = fraction of
+    pixels with a 200 e-/s dark current (smooth scene then, so that spikes can be told)."""
     rng = np.random.default_rng(seed)
     t = 0.00025 * 2.0 ** np.arange(16)
+    h, w = size
+    hot_mask = rng.random((h, w)) < hot
     leds = []
     for k, led in enumerate((6, 9)):
-        h, w = 60, 80
-        rate = np.exp(rng.uniform(np.log(20), np.log(2e6), (h, w)))      # DN/s above black
+        if hot:
+            yy, xx = np.mgrid[0:h, 0:w]
+            rate = np.exp(np.log(20) + np.log(2e4) * xx / w) * (1 + 0.2 * np.sin(yy / 7.0 + k))
+        else:
+            rate = np.exp(rng.uniform(np.log(20), np.log(2e6), (h, w)))      # DN/s above black
+        rate = rate + hot_mask * 200.0 / E_PER_DN
         times = 600.0 * k + np.cumsum(t + 9.0)
         tau = (times - times.mean()) / 60.0
         x = rate[None] * t[:, None, None] * (1 + drift * tau)[:, None, None]
@@ -63,6 +76,26 @@ def test_sensor_nonlinearity_found_with_magnitude():
     w = winner(causes)
     assert w is not None and w.name == "sensor_nonlinearity"
     assert abs(w.params["c"] - c) < 0.25 * c, (w.params, c)
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_led_drift_found_with_magnitude(seed):
+    """Thesis-like drift: a 1-5 % amplitude over a 20-60 min period is a gain slope of
+    0.001-0.015 / min within one LED's sequence."""
+    a = float(np.random.default_rng(seed).uniform(0.004, 0.012)) * (-1) ** seed
+    w = winner(frame_causes(synthetic_frames(seed, drift=a)))
+    assert w is not None and w.name == "led_drift", w and (w.name, w.gain)
+    for v in w.params["gain_slope_per_min"].values():
+        assert abs(v - a) < 0.2 * abs(a), (w.params, a)
+
+
+def test_hot_pixels_found_with_fraction():
+    f = float(np.random.default_rng(7).uniform(1e-3, 3e-3))
+    fd = synthetic_frames(7, hot=f, size=(160, 200))
+    w = winner(frame_causes(fd))
+    assert w is not None and w.name == "hot_pixels", w and (w.name, w.gain)
+    assert abs(w.params["dark_current_e_s"] - 200.0) < 20.0
+    assert abs(w.magnitude - f) < 0.35 * f, (w.params, f)
 
 
 def test_bad_fit_file_names_the_file(tmp_path):

@@ -87,7 +87,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     meta = {"sample": str(sample_dir), "reference": str(reference_dir), "camera": str(camera), "lamps": str(lamps),
             "fit": str(fit) if fit else None, "material": w.as_dict(), "material_from_capture": fit is None,
             "n_brdf_rows": int(len(m.rows)), "leds": sorted(int(x) for x in np.unique(t.led)),
-            "splits": {"brdf": "leave one LED out (two halves along the cylinder axis with one LED)",
+            "splits": {"brdf": "leave one LED out (per-LED parameters or one LED: the two halves of the pixel rows)",
                        "frames": "even / odd exposure index", "pixels": "leave one LED out"},
             "time_s": time.time() - t0}
     return write_report(out, causes, base, structure, meta, plots=plots)

@@ -10,7 +10,7 @@ squared normalised residual, :func:`chi2`):
   :meth:`BrdfModel.noise`: the sample's HDR noise, a small model floor, the
   lobe's slope times the geometric calibration's angle uncertainty, and a
   Huber weight against the few rows the base model misses grossly. Folds: leave
-  one LED out (per-LED parameters: the two halves along the cylinder axis).
+  one LED out (per-LED parameters, or one LED: the two halves of the pixel rows).
 * ``frames``: raw DN of every exposure against a linear sensor and a steady LED,
   ``DN - black = rate * t`` with one rate per pixel fitted on the training
   exposures. Folds: even / odd exposure index (interleaved in time).
@@ -175,7 +175,11 @@ class BrdfModel:
         leds = np.unique(self.cols["led"])
         if len(leds) >= 2:
             return [(self.cols["led"] != l, self.cols["led"] == l) for l in leds]
-        # one LED: the two halves of the sample along the pixel rows (cylinder axis)
+        return self.halves()
+
+    def halves(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The two halves of the sample's pixel rows (on the thesis rig the cylinder axis runs
+        along the pixel columns, so these are the two sides of the cylinder)."""
         v = self.cols["v"]
         top = v < np.median(v)
         return [(~top, top), (top, ~top)]

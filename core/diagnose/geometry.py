@@ -20,8 +20,10 @@ lamp calibration were taken (the blind study's set-up). A change shared by the
 reference capture cancels in S / R except through the angles.
 
 Per-LED parameters cannot be predicted on a held-out LED, so those causes are fitted
-on one half of the sample along the cylinder axis and scored on the other (two
-folds), the global radius by leaving one LED out. Identifiability: the held-out
+on one half of the sample's pixel rows and scored on the other (two spatial folds;
+the thesis rig's image has the cylinder axis along the pixel columns, so the halves
+are the two sides of the cylinder around its circumference), the global radius by
+leaving one LED out. Identifiability: the held-out
 error along the scale of the fitted parameter vector (0 = base model, 1 = fit) must
 not be flat.
 """
@@ -143,15 +145,9 @@ class Geometry:
         return L, F
 
 
-def _halves(m: BrdfModel):
-    v = m.cols["v"]
-    top = v < np.median(v)
-    return [(~top, top), (top, ~top)]
-
-
 def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude, params_of, unit) -> CauseResult:
-    """A cause with a parameter vector (some per LED): fitted on one half of the sample along
-    the cylinder axis by variable projection (rho_d, rho_s linear), scored on the other half."""
+    """A cause with a parameter vector (some per LED): fitted on one half of the sample's pixel
+    rows by variable projection (rho_d, rho_s linear), scored on the other half."""
     m = geo.m
     c = m.cols
     rng = np.random.default_rng(0)
@@ -177,7 +173,7 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
                              max_nfev=30 * len(x0)).x
 
     allrows = np.arange(len(c["y"]))
-    for train, test in _halves(m):
+    for train, test in m.halves():
         tr, te = allrows[train], allrows[test]
         x = fit(tr)
         fits.append(x)
@@ -204,7 +200,7 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
         r.note = ("held-out error varies by less than 2 % along the fitted parameters (scale 0-2): "
                   "the data cannot tell this cause apart")
     else:
-        r.note = "split: the two halves of the sample along the cylinder axis (per-LED parameters); stderr = fold spread"
+        r.note = "split: the two halves of the sample's pixel rows (per-LED parameters); stderr = fold spread"
     return r
 
 

@@ -1,7 +1,7 @@
 """Residual structure against the variables a cause leaves its mark on (issue 7, step 2).
 
 BRDF space: base-model residuals (normalised) binned against distance from the
-optical centre, position along the cylinder axis (pixel row), LED id, signal
+optical centre, position along the cylinder axis (holder y, mm), LED id, signal
 level, theta_in, theta_out, theta_h, theta_d and phi_h. Frame space: residuals
 of the linear sensor binned against exposure time, capture order (time) and
 signal level (DN). A flat profile means the variable carries no discrepancy.
@@ -42,7 +42,7 @@ def brdf_structure(m: BrdfModel) -> dict:
     d = m.data
     rad = np.sqrt(vignetting_factor(c["u"] + 1.0, c["v"] + 1.0, d.image_size, d.principal_point))
     deg = np.degrees
-    vars_ = {"distance_from_optical_centre (r/r_corner)": rad, "axis_position (pixel row)": c["v"],
+    vars_ = {"distance_from_optical_centre (r/r_corner)": rad, "axis_position (mm)": d.table["y"].to_numpy(float)[m.rows],
              "led": c["led"], "signal (patch-normalised)": np.log10(np.maximum(c["signal"], 1e-6)),
              "theta_in (deg)": deg(c["theta_in"]), "theta_out (deg)": deg(c["theta_out"]),
              "theta_h (deg)": deg(c["theta_h"]), "theta_d (deg)": deg(c["theta_d"]), "phi_h (deg)": deg(c["phi_h"])}

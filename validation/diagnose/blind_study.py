@@ -201,6 +201,9 @@ def main(argv=None):
     store = work / "trials.json"
     done = json.loads(store.read_text()) if store.exists() else []
     if not a.summary_only:
+        # import every diagnosis module now: the study runs for an hour and must use one version
+        import glossrig.core.diagnose.geometry  # noqa: F401
+        import glossrig.core.diagnose.material_models  # noqa: F401
         from glossrig.core.extract import measure_capture
         from glossrig.core.intrinsics import load_camera
         from glossrig.core.lamps import load_lamps
