@@ -229,68 +229,71 @@ def fresnel_profile(a: dict, y, W, folds, grid, kind: str = "ggx", start=(0.1, 0
 
 # ------------------------------------------------------------------ diagnose causes
 
-def material_causes(m) -> list:
-    """Causes of the catalogue for the material and reference models (BRDF space,
-    leave-one-LED-out folds of :class:`glossrig.core.diagnose.catalogue.BrdfModel`)."""
-    from .catalogue import CauseResult, chi2
+def _refit_cause(m, a, kind, fac, start):
+    """Held-out scores of a lobe of ``kind`` refitted per fold (shape and rho_d, rho_s) to the data
+    divided by ``fac``, predicting ``fac`` times the fit, against the base model (Ward lobe of the
+    fit, rho_d and rho_s re-solved per fold). Returns (error, base error, fold gains, fit on all rows)."""
+    from .catalogue import chi2
 
     c = m.cols
-    out = []
     one = np.full_like(c["L"], 1 / np.pi)
-    t = m.data.table.iloc[m.rows]
-    a = angle_arrays(t)
-
-    # ---- GGX lobe: the shape refitted per fold with rho_d, rho_s linear (no extra parameter)
-    doc = ("Microfacet lobe shape: Ward's Gaussian lobe (eq. 4.79) replaced by the anisotropic GGX / "
-           "Trowbridge-Reitz lobe D G2 / (4 cos_i cos_o) with height-correlated Smith masking (Walter et al. "
-           "2007, Heitz 2014), axes turned as in eq. 4.80. Real glossy surfaces have GGX's long tails: the Ward "
-           "fit then underestimates the tails and overshoots the flanks of the peak.")
-    w = m.lobe
-    start = (w.alpha_x, w.alpha_y, w.lobe_rotation)
+    y, sig = c["y"], c["sigma"]
     e0s = e1s = 0.0
     gains = []
     n_tot = 0
     for train, test in m.folds():
         sub = {k: v[train] for k, v in a.items()}
-        f = fit_lobe(sub, c["y"][train], 1 / c["sigma"][train], "ggx", start, uncertainty=False)
-        L = ggx_lobe(*(a[k] for k in ANGLES), f.alpha_x, f.alpha_y, f.lobe_rotation)
-        _, p1, _ = m.solve_linear([one, L], train)
+        f = fit_lobe(sub, y[train] / fac[train], fac[train] / sig[train], kind, start, uncertainty=False)
+        p1 = f.predict(a) * fac
         _, p0, _ = m.solve_linear([one, c["L"]], train)
-        e0, e1 = chi2((c["y"] - p0)[test], c["sigma"][test]), chi2((c["y"] - p1)[test], c["sigma"][test])
+        e0, e1 = chi2((y - p0)[test], sig[test]), chi2((y - p1)[test], sig[test])
         e0s, e1s, n_tot = e0s + e0 * test.sum(), e1s + e1 * test.sum(), n_tot + test.sum()
         gains.append((e0 - e1) / e0)
-    f = fit_lobe(a, c["y"], 1 / c["sigma"], "ggx", start)
-    params = {"alpha_x": f.alpha_x, "alpha_y": f.alpha_y, "lobe_rotation": f.lobe_rotation, "rho_d": f.rho_d,
-              "rho_s": f.rho_s, "unit": "GGX roughness, radians"}
-    out.append(CauseResult("ggx_lobe", "brdf", doc, params, f.stderr, e1s / n_tot, e0s / n_tot, gains, 0,
-                           magnitude=f.alpha_x))
+    return e1s / n_tot, e0s / n_tot, gains, fit_lobe(a, y / fac, fac / sig, kind, start)
 
-    # ---- the reference's own BRDF instead of Lambertian albedo 0.8 (no fitted parameter)
+
+def material_causes(m) -> list:
+    """Causes of the catalogue for the material and reference models (BRDF space,
+    leave-one-LED-out folds of :class:`glossrig.core.diagnose.catalogue.BrdfModel`)."""
+    from .catalogue import CauseResult
+
+    c = m.cols
+    out = []
+    t = m.data.table.iloc[m.rows]
+    a = angle_arrays(t)
+    w = m.lobe
+    start = (w.alpha_x, w.alpha_y, w.lobe_rotation)
+    names = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
+
+    # ---- GGX lobe: the shape refitted per fold (same number of parameters as Ward's)
+    doc = ("Microfacet lobe shape: Ward's Gaussian lobe (eq. 4.79) replaced by the anisotropic GGX / "
+           "Trowbridge-Reitz lobe D G2 / (4 cos_i cos_o) with height-correlated Smith masking (Walter et al. "
+           "2007, Heitz 2014), axes turned as in eq. 4.80. Real glossy surfaces have GGX's long tails: the Ward "
+           "fit then underestimates the tails and overshoots the flanks of the peak.")
+    e1, e0, gains, f = _refit_cause(m, a, "ggx", np.ones_like(c["y"]), start)
+    out.append(CauseResult("ggx_lobe", "brdf", doc, dict({k: getattr(f, k) for k in names},
+                                                           unit="GGX roughness, radians"),
+                           f.stderr, e1, e0, gains, 0, magnitude=f.alpha_x))
+
+    # ---- the reference's own BRDF instead of Lambertian albedo 0.8 (no extra parameter)
     ref = getattr(m.data, "reference_brdf", None)
     if ref is not None:
         doc = ("Non-Lambertian diffuse reference: the thesis divides by a Lambertian white of albedo 0.8 "
                "(eq. 4.78); the real reference's BRDF f_ref(wi, wo) varies with the angles and has another "
                "albedo, leaving a factor (albedo/pi) / f_ref on every measured value. Corrected with the "
-               "reference's measured BRDF at each sample's angles (the scale part is absorbed by rho_d, rho_s "
-               "here; only the angular shape can lower the held-out error).")
+               "reference's measured BRDF at each sample's angles and the Ward lobe refitted to the corrected "
+               "values. The scale part is absorbed by rho_d, rho_s; only the angular shape of the correction can "
+               "lower the held-out error, and a wrong lobe shape may have absorbed part of it.")
         rgb = t[["r", "g", "b"]].to_numpy(float)
         yc = renormalise(rgb, ref(t), m.data.albedo) @ LUMA
         fac = c["y"] / np.where(yc > 0, yc, np.nan)
         ok = np.isfinite(fac) & (fac > 0)
         fac = np.where(ok, fac, 1.0)
-        e0s = e1s = 0.0
-        gains = []
-        n_tot = 0
-        for train, test in m.folds():
-            _, p0, _ = m.solve_linear([one, c["L"]], train)
-            _, p1, _ = m.solve_linear([one, c["L"]], train, fac)
-            e0, e1 = chi2((c["y"] - p0)[test], c["sigma"][test]), chi2((c["y"] - p1)[test], c["sigma"][test])
-            e0s, e1s, n_tot = e0s + e0 * test.sum(), e1s + e1 * test.sum(), n_tot + test.sum()
-            gains.append((e0 - e1) / e0)
-        scale = float(np.median(1 / fac[ok])) if ok.any() else float("nan")
-        out.append(CauseResult("reference_brdf", "brdf", doc,
-                               {"median_correction": scale, "spread_p5_p95": [float(np.percentile(1 / fac[ok], 5)),
-                                                                              float(np.percentile(1 / fac[ok], 95))],
-                                "unit": "corrected / thesis-normalised value"},
-                               {}, e1s / n_tot, e0s / n_tot, gains, 0, magnitude=scale))
+        e1, e0, gains, f = _refit_cause(m, a, "ward", fac, start)
+        corr = 1 / fac[ok]
+        params = dict({k: getattr(f, k) for k in names}, median_correction=float(np.median(corr)),
+                      spread_p5_p95=[float(np.percentile(corr, 5)), float(np.percentile(corr, 95))],
+                      unit="corrected / thesis-normalised value; Ward parameters of the corrected data")
+        out.append(CauseResult("reference_brdf", "brdf", doc, params, f.stderr, e1, e0, gains, 0,
+                               magnitude=float(np.median(corr))))
     return out
