@@ -98,6 +98,134 @@ def test_hot_pixels_found_with_fraction():
     assert abs(w.magnitude - f) < 0.35 * f, (w.params, f)
 
 
+# ----------------------------------------------------------------- BRDF space (synthetic)
+
+WARD = dict(rho_d=0.052, rho_s=0.0069, alpha_x=0.06, alpha_y=0.034, lobe_rotation=2.48)   # sample_2_6-like
+
+
+def synthetic_brdf(seed, effect=None, value=0.0, scale=0.125, leds=(6, 9), noise=0.004):
+    """Measured BRDF rows of a capture whose rig carries ``effect`` while the reference, the
+    calibrations and the pipeline assume the nominal rig. Built from the twin's catalogue
+    (EffectState: LED positions, emission pattern, vignetting; stray light as its doc states)
+    and the pipeline's cylinder geometry: S / S_patch of the sample over R / R_patch of a
+    Lambertian reference, as thesis eq. 4.78 divides them."""
+    import pandas as pd
+
+    from glossrig.core.angles import normalize
+    from glossrig.core.cylinder import sample_angles, surface_samples
+    from glossrig.core.diagnose.data import BrdfData
+    from glossrig.core.extract import Measured, RotationGeometry
+    from glossrig.core.markers import holder_marker_corners
+    from glossrig.core.rig import load_rig
+    from glossrig.core.ward import WardParams, ward_from_angles
+    from glossrig.twin.effects import EffectState
+
+    rng = np.random.default_rng(seed)
+    rig = load_rig(RIG)
+    cam = rig.camera
+    R, t = cam.pose()
+    K, dist, size = cam.matrix(scale), np.asarray(cam.distortion, float), cam.size(scale)
+    es = EffectState({effect: value} if effect else {}, seed, rig.led_ids())
+    w, h = size
+    uu, vv = np.meshgrid(np.arange(0, w, 4) + 0.5, np.arange(0, h, 4) + 0.5)   # every other Bayer block
+    I3, z3 = np.eye(3), np.zeros(3)
+    nom = surface_samples(K, dist, size, R, t, I3, z3, rig.cylinder_radius, rig.sample_height,
+                          pixels=(uu.ravel(), vv.ravel()))
+    dr = value if effect == "sample_radius_error" else 0.0
+    true = surface_samples(K, dist, size, R, t, I3, z3, rig.cylinder_radius + dr, rig.sample_height,
+                           pixels=(nom.u, nom.v))
+    keep = np.isin(nom.u * 1e5 + nom.v, true.u * 1e5 + true.v)
+    nom = type(nom)(nom.u[keep], nom.v[keep], nom.points[keep], nom.normals[keep], nom.camera_centre, nom.axis)
+    corners = holder_marker_corners(rig, inner=True)
+    patch = corners.mean(axis=0)
+    pn = normalize(np.cross(corners[1] - corners[0], corners[2] - corners[0]))
+    pn = pn if pn @ (nom.camera_centre - patch) > 0 else -pn
+    pc = K @ (R @ patch + t)
+    patch_uv = (pc[0] / pc[2], pc[1] / pc[2])
+    vig = es.vignetting_factor(size, K)
+    ward = WardParams(**WARD)
+
+    def irr(P, pts, n):
+        d = P - pts
+        d2 = np.sum(d * d, axis=-1)
+        return np.sum(d * n, axis=-1) / np.sqrt(d2) / d2
+
+    def at(img, u, v):
+        return 1.0 if img is None else img[np.clip(np.round(v).astype(int), 0, h - 1),
+                                           np.clip(np.round(u).astype(int), 0, w - 1)]
+
+    rot_true = es.get("sample_rotation_offset")
+    rows = []
+    for led in leds:
+        P0 = np.asarray(rig.led(led).position, float)
+        P1 = np.asarray(es.led_position(rig.led(led)), float)
+        a_nom = sample_angles(nom, P0, 0.0)
+        a_true = sample_angles(true, P1, rot_true)
+        em = es.emission_factor(led, P1, true.points)
+        em_p = es.emission_factor(led, P1, patch[None])
+        stray = es.get("stray_light") / (np.pi * float(P1 @ P1))            # s I / (pi D^2), I = 1
+        S = ward_from_angles(a_true["theta_in"], a_true["theta_out"], a_true["theta_h"], a_true["phi_h"], ward) \
+            * irr(P1, true.points, true.normals) * (1.0 if em is None else em) + stray
+        Sp = 0.9 / np.pi * irr(P1, patch, pn) * (1.0 if em_p is None else em_p[0]) + stray
+        S, Sp = S * at(vig, nom.u, nom.v), Sp * at(vig, *patch_uv)
+        Rv = 0.8 / np.pi * irr(P0, nom.points, nom.normals) / (0.9 / np.pi * irr(P0, patch, pn))
+        f = 0.8 / np.pi * (S / Sp) / Rv * (1 + noise * rng.standard_normal(len(S)))
+        ok = (a_nom["cos_in"] > 0.05) & (a_nom["cos_out"] > 0.05) & (a_true["cos_in"] > 0.01)
+        df = pd.DataFrame({k: np.asarray(a_nom[k])[ok] for k in a_nom})
+        df["u"], df["v"] = np.floor(nom.u[ok]).astype(int), np.floor(nom.v[ok]).astype(int)
+        df["led"], df["rotation"] = led, 0.0
+        for k, c in enumerate("xyz"):
+            df[c] = nom.points[ok, k]
+            df["n" + c] = nom.normals[ok, k]
+        df["f"], df["S"], df["relvar"] = f[ok], (S / Sp)[ok], noise ** 2
+        df["R"] = 0.8 / np.pi * df["S"] / df["f"]
+        rows.append(df)
+    table = pd.concat(rows, ignore_index=True)
+    geom = RotationGeometry(0.0, "", R, t, I3, z3, nom, (0, 0, w, h), np.zeros((h, w), bool))
+    data = BrdfData(table, Measured(table, str(RIG), {0.0: geom}), 0.8, size, (K[0, 2], K[1, 2]),
+                    {0.0: patch_uv}, {k: np.asarray(rig.led(k).position, float) for k in leds}, material_fixed=True,
+                    camera=(K, dist))
+    return data, ward
+
+
+def brdf_winner(seed, effect=None, value=0.0):
+    from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes
+
+    data, ward = synthetic_brdf(seed, effect, value)
+    causes = brdf_causes(BrdfModel.build(data, ward))
+    return winner(causes), causes
+
+
+def test_null_brdf_gives_no_cause():
+    w, causes = brdf_winner(20)
+    assert w is None, [(c.name, round(c.gain, 4)) for c in causes]
+
+
+# cause -> (drawn magnitude range, tolerance: absolute when > 0, else relative)
+BRDF_CASES = {"vignetting": ((0.1, 0.3), -0.2), "stray_light": ((0.002, 0.01), -0.2),
+              "led_emission": ((10.0, 60.0), -0.3), "sample_rotation_offset": ((1.0, 5.0), 0.5),
+              "led_position_error": ((1.0, 4.0), -0.5), "sample_radius_error": ((0.3, 1.0), 0.15)}
+FAST = ("vignetting",)
+
+
+@pytest.mark.parametrize("cause", [c if c in FAST else pytest.param(c, marks=pytest.mark.slow) for c in BRDF_CASES])
+def test_brdf_cause_found_with_magnitude(cause):
+    (lo, hi), tol = BRDF_CASES[cause]
+    seed = 30 + list(BRDF_CASES).index(cause)
+    value = float(np.random.default_rng(seed).uniform(lo, hi))
+    w, causes = brdf_winner(seed, cause, value)
+    assert w is not None and w.name == cause, [(c.name, round(c.gain, 4), c.significant) for c in causes]
+    truth = value
+    if cause == "led_position_error":           # the RMS of the drawn offsets of the two LEDs
+        from glossrig.twin.effects import EffectState
+        from glossrig.core.rig import load_rig
+
+        es = EffectState({cause: value}, seed, load_rig(RIG).led_ids())
+        truth = float(np.sqrt(np.mean([np.square(es.detail["led_offset_mm"][k]) for k in (6, 9)])))
+    err = abs(w.magnitude - truth)
+    assert err < (tol if tol > 0 else -tol * abs(truth)), (w.params, truth)
+
+
 def test_bad_fit_file_names_the_file(tmp_path):
     from glossrig.core.diagnose import load_fit
 

@@ -3,9 +3,12 @@
 Fits the forward model to the capture (geometry from the calibrations, the
 material from a Ward fit of this capture or --fit, the sensor from the raws),
 then fits every named cause of the catalogue (stray_light, vignetting,
-sample_rotation_offset, fresnel in BRDF space; black_level_offset,
-sensor_nonlinearity, led_drift in frame space; hot_pixels in pixel space) on
-training folds and scores it on held-out folds split by LED or by exposure.
+sample_rotation_offset, fresnel, led_emission, led_position_error,
+sample_radius_error and the material/reference models in BRDF space;
+black_level_offset, sensor_nonlinearity, led_drift in frame space; hot_pixels in
+pixel space) on training folds and scores it on held-out folds split by LED, by
+pixel-row halves (per-LED parameters) or by exposure. Sensor-level causes are
+named first (light and geometry cannot bend the raw exposure series).
 Writes REPORT_DIR/report.json ({"base_error", "verdict", "causes": [...]} sorted
 by gain), report.md and the residual plots.
 

@@ -13,8 +13,9 @@ sensor_nonlinearity (glossrig.core.diagnose.hide), and whose geometric calibrati
 (holder and cylinder poses) is reused by every trial. Trial k: cause ``CAUSES[k mod 11]``
 (or none) at a magnitude drawn from its seed, hidden in a sample_2_6 capture (LEDs 6,
 9, rotation 0, scale 0.25, --ideal, seed 1000 + k) by the twin's ``--effects`` or by
-rewriting; then diagnose runs blind. Budget per trial: BRDF rows capped at
-``ROWS``, frame pixels at ``PIXELS``. Resumable: finished trials are kept in
+rewriting; then diagnose runs blind. Budget per trial (2 cores shared by four
+engineers): BRDF rows capped at ``ROWS``, frame pixels at ``PIXELS``, rows of the
+geometry causes' non-linear fits at ``FIT_ROWS``. Resumable: finished trials are kept in
 WORK/trials.json; rerunning continues. Writes validation/diagnose/blind_study.md.
 """
 from __future__ import annotations
@@ -35,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[2]
 RIG = ROOT / "scenes/thesis_rig.toml"
 OUT = Path(__file__).parent / "blind_study.md"
 LEDS = (6, 9)
-ROWS, PIXELS = 25_000, 6_000
+ROWS, PIXELS, FIT_ROWS = 12_000, 3_000, 3_000
 # cause -> (low, high) of the drawn magnitude (the twin catalogue's unit), how it is hidden
 CAUSES = {"none": (0, 0, "twin"), "black_level_offset": (3, 15, "rewrite"),
           "sensor_nonlinearity": (0.01, 0.05, "rewrite"), "stray_light": (0.002, 0.01, "twin"),
@@ -117,9 +118,10 @@ def true_magnitude(cause: str, value: float, cap: Path) -> float:
 def trial(k: int, work: Path, a, null: Path, fit: Path, ref) -> dict:
     import glossrig.core.diagnose.catalogue as catalogue
     import glossrig.core.diagnose.frames as frames
+    import glossrig.core.diagnose.geometry as geometry
     from glossrig.core.diagnose import diagnose
 
-    catalogue.MAX_BRDF_ROWS, frames.MAX_PIXELS = ROWS, PIXELS
+    catalogue.MAX_BRDF_ROWS, frames.MAX_PIXELS, geometry.FIT_ROWS = ROWS, PIXELS, FIT_ROWS
     rng = np.random.default_rng([2026, k])
     names = list(CAUSES)
     cause = names[k % len(names)]
@@ -168,7 +170,7 @@ def summarise(trials: list[dict]) -> str:
          "camera/lamp calibration and lambert:0.8 reference for all trials; material fit from one null capture "
          "(--fit), whose poses are reused by every trial; black offset and non-linearity rewritten into that "
          "capture's DNGs outside the twin. "
-         f"Budget: BRDF rows <= {ROWS}, frame pixels <= {PIXELS}.", "",
+         f"Budget: BRDF rows <= {ROWS}, frame pixels <= {PIXELS}, geometry-fit rows <= {FIT_ROWS}.", "",
          f"trials completed: {len(trials)}  ", f"top-1 accuracy: {acc:.1%}  ",
          f"false-alarm rate (null captures): {fa:.1%} of {len(nulls)} (targets: >= 90 %, <= 5 %)", "",
          "## Confusion matrix (rows: hidden cause, columns: verdict)", "",
