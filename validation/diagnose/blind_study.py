@@ -153,7 +153,41 @@ def trial(k: int, work: Path, a, null: Path, fit: Path, ref) -> dict:
     return res
 
 
-def summarise(trials: list[dict]) -> str:
+def gain_table(trials: list[dict], work: Path | None) -> list[str]:
+    """Per cause: the held-out gain its model reaches on null captures (the null spread) and on
+    the trials hiding it, against its threshold - the measurement behind every miss."""
+    if work is None:
+        return []
+    reps = {}
+    for t in trials:
+        f = work / f"t{t['trial']:03d}_report" / "report.json"
+        if f.exists():
+            reps[t["trial"]] = {c["name"]: c for c in json.loads(f.read_text())["causes"]}
+    if not reps:
+        return []
+    nulls = [reps[t["trial"]] for t in trials if t["truth"] == "none" and t["trial"] in reps]
+    L = ["", "## Gains: null spread against the hidden cause", "",
+         "Held-out relative gain of each cause's model on the null captures (max) and on the trials that hide "
+         "it (min / median / max), with its significance threshold (space threshold + penalty x extra "
+         "parameters) and how often it was significant when hidden.", "",
+         "| cause | threshold | null max | hidden min | hidden median | hidden max | significant when hidden |",
+         "|---|---|---|---|---|---|---|"]
+    for name in [n for n in CAUSES if n != "none"]:
+        hid = [reps[t["trial"]][name] for t in trials if t["truth"] == name and t["trial"] in reps
+               and name in reps[t["trial"]]]
+        nul = [r[name]["gain"] for r in nulls if name in r]
+        if not hid:
+            continue
+        g = [c["gain"] for c in hid]
+        thr = max(c["threshold"] for c in hid)
+        L.append(f"| {name} | {thr:.3%} | {max(nul):.3%} | {min(g):.3%} | {float(np.median(g)):.3%} | "
+                 f"{max(g):.3%} | {sum(c['significant'] for c in hid)}/{len(hid)} |" if nul else
+                 f"| {name} | {thr:.3%} | - | {min(g):.3%} | {float(np.median(g)):.3%} | {max(g):.3%} | "
+                 f"{sum(c['significant'] for c in hid)}/{len(hid)} |")
+    return L
+
+
+def summarise(trials: list[dict], work: Path | None = None) -> str:
     names = list(CAUSES)
     verdicts = names + sorted({t["verdict"] for t in trials} - set(names))
     M = {(t, v): 0 for t in names for v in verdicts}
@@ -186,6 +220,7 @@ def summarise(trials: list[dict]) -> str:
         top = ", ".join(f"{n} {gg:.1%}{'*' if s else ''}" for n, gg, s in t["top"])
         L.append(f"| {t['trial']} | {t['truth']} | {t['true_magnitude']:.4g} | {est} | {g} | {t['verdict']} | {top} |")
     L += ["", "`*` = significant (held-out gain above threshold + penalty in every fold)."]
+    L += gain_table(trials, work)
     return "\n".join(L) + "\n"
 
 
@@ -219,9 +254,9 @@ def main(argv=None):
                 continue
             done.append(trial(k, work, a, null, fit, ref))
             store.write_text(json.dumps(done, indent=1))
-            OUT.write_text(summarise(done))
+            OUT.write_text(summarise(done, work))
             print(json.dumps(done[-1]), flush=True)
-    OUT.write_text(summarise(done))
+    OUT.write_text(summarise(done, work))
 
 
 if __name__ == "__main__":
