@@ -140,21 +140,33 @@ class HdrNoise:
                    conversion_gain=e_per_dn, saturation_e=min(full, span_dn * e_per_dn),
                    read_noise_e=read, dark_current_e_s=dark, led_rel=led_rel)
 
-    def relative(self, f, cos_in, dist_mm) -> np.ndarray:
-        """Relative standard deviation of the HDR BRDF estimate (inf when no exposure is usable)."""
-        f = np.asarray(f, float)
+    def electron_rate(self, f, cos_in, dist_mm) -> np.ndarray:
+        """Green-channel photo-electrons per second of a BRDF value ``f`` (1/sr) lit at
+        incidence cosine ``cos_in`` from ``dist_mm``: ``k_G (11/N)^2 f I cos / d^2``."""
         d_m = np.asarray(dist_mm, float) * 1e-3
-        L = f * self.radiant_intensity_W_sr * np.maximum(np.asarray(cos_in, float), 0.0) / d_m ** 2
-        rate = self.electrons_per_radiance_s * L
+        L = np.asarray(f, float) * self.radiant_intensity_W_sr * np.maximum(np.asarray(cos_in, float), 0.0) / d_m ** 2
+        return self.electrons_per_radiance_s * L
+
+    def sensor_relative(self, rate, times_s=None, saturation_rate=None) -> np.ndarray:
+        """Relative standard deviation from sensor noise alone (shot, dark, read,
+        quantisation) of the inverse-variance HDR merge of ``times_s`` (default: the
+        rig's table) at electron ``rate``; inf when no exposure is usable.
+        ``saturation_rate`` (default ``rate``) decides which exposures stay below
+        ``usable_fraction`` of saturation (a planner passes a brighter bound)."""
+        rate = np.asarray(rate, float)
+        sat = rate if saturation_rate is None else np.asarray(saturation_rate, float)
         K = self.conversion_gain
-        info = np.zeros_like(rate)
-        for t in self.times_s:
-            e = rate * t
-            use = e < self.usable_fraction * self.saturation_e
-            var_rate = (e + self.dark_current_e_s * t + self.read_noise_e ** 2 + K * K / 12.0) / (t * t)
+        info = np.zeros(np.broadcast(rate, sat).shape)
+        for t in (self.times_s if times_s is None else times_s):
+            use = sat * t < self.usable_fraction * self.saturation_e
+            var_rate = (rate * t + self.dark_current_e_s * t + self.read_noise_e ** 2 + K * K / 12.0) / (t * t)
             info += np.where(use, 1.0 / var_rate, 0.0)
         with np.errstate(divide="ignore", invalid="ignore"):
-            shot = np.where((info > 0) & (rate > 0), 1.0 / (np.sqrt(info) * rate), np.inf)
+            return np.where((info > 0) & (rate > 0), 1.0 / (np.sqrt(info) * rate), np.inf)
+
+    def relative(self, f, cos_in, dist_mm) -> np.ndarray:
+        """Relative standard deviation of the HDR BRDF estimate (inf when no exposure is usable)."""
+        shot = self.sensor_relative(self.electron_rate(f, cos_in, dist_mm))
         return np.sqrt(shot ** 2 + self.led_rel ** 2)
 
     def sigma(self, f, cos_in, dist_mm) -> np.ndarray:

@@ -7,6 +7,9 @@ exposures of table 4.1 (f/11, ISO 320, 1/4000 s .. 30 s). Rotating the sample on
 cylinder (thesis 6.2: -45, 0, 45 and 90 degrees) repeats all of that per rotation.
 
 The plan file's format is :data:`PLAN_FORMAT` (also printed by ``glossrig capture --help``).
+Its optional ``[led_exposures_s]`` table gives LEDs their own exposure sequences (an
+extension of the thesis's one table for all, written by ``glossrig design exposures``,
+:mod:`glossrig.core.exposure_plan`); every other LED uses ``exposures_s``.
 
 Time. The physical floor of a plan is the sum of its exposure times. The thesis
 measured "on average 4 minutes" per 18-exposure sequence (4.2.3); those 18 exposures
@@ -43,6 +46,7 @@ rotations = [0]                  # degrees; default: the rig's sample_rotations
 leds = [1, 2]                    # ids, or "middle" / "upper" / "lower" / "all"
 repeats = 2                      # LDR sequences per LED (thesis m#); default: the rig's sequences_per_led
 exposures_s = [0.01, 0.02]       # or "rig" for the rig's table (thesis table 4.1)
+                                 # [led_exposures_s] below: per-LED exposures instead
 calibration = true               # the all-LEDs calibration image first, per rotation
 iso = 320                        # sequence ISO / f-number; default: the rig's
 aperture = 11.0
@@ -51,6 +55,9 @@ calibration_iso = 3200
 calibration_aperture = 11.0
 overhead_s_per_shot = 9.94       # measured time per shot beyond the exposure itself
 settle_s = 0.0                   # wait after switching LEDs before the next shot
+
+[led_exposures_s]                # optional: these LEDs' sequences use their own exposures
+2 = [0.5, 4.0]                   # (glossrig design exposures writes this); the others exposures_s
 
 [checkerboard]                   # optional camera-calibration views, taken first
 views = 0                        # the operator is asked to place the board for each
@@ -72,7 +79,7 @@ spp = 4                          # Mitsuba samples per pixel
 ROLE_ORDER = ("checkerboard", "calibration", "sequence")
 _TOP_KEYS = {"rig", "sample", "rotations", "leds", "repeats", "exposures_s", "calibration", "iso", "aperture",
              "calibration_exposure_s", "calibration_iso", "calibration_aperture", "overhead_s_per_shot",
-             "settle_s", "checkerboard", "twin"}
+             "settle_s", "checkerboard", "twin", "led_exposures_s"}
 _CHECKER_KEYS = {"views", "leds", "exposure_s", "iso", "aperture"}
 _TWIN_KEYS = {"material", "scale", "seed", "effects", "ideal", "spp"}
 
@@ -148,6 +155,11 @@ class CapturePlan:
     settle_s: float
     twin: dict = field(default_factory=dict)
     raw: dict = field(default_factory=dict, repr=False)
+    led_exposures_s: dict = field(default_factory=dict)    # LED id -> its own exposures
+
+    def exposures_for(self, led: int) -> tuple[float, ...]:
+        """The exposure sequence of one LED: its ``[led_exposures_s]`` entry, else ``exposures_s``."""
+        return self.led_exposures_s.get(led, self.exposures_s)
 
     def shots(self) -> list[Shot]:
         """In capture order (thesis 4.2.3): checkerboard views, then per rotation the
@@ -169,7 +181,7 @@ class CapturePlan:
                     aperture=self.calibration_aperture)
             for led in self.leds:
                 for rep in range(self.repeats):
-                    for k, t in enumerate(self.exposures_s):
+                    for k, t in enumerate(self.exposures_for(led)):
                         add(role="sequence", leds=(led,), rotation=rot, repeat=rep, exposure_s=t, iso=self.iso,
                             aperture=self.aperture, exposure_index=k)
         return out
@@ -189,7 +201,8 @@ class CapturePlan:
         """What the manifest records about the plan."""
         return {"path": self.path, "sha256": self.text_sha256, "sample": self.sample,
                 "rotations": list(self.rotations), "leds": list(self.leds), "repeats": self.repeats,
-                "exposures_s": list(self.exposures_s), "iso": self.iso, "aperture": self.aperture,
+                "exposures_s": list(self.exposures_s),
+                "led_exposures_s": {str(k): list(v) for k, v in self.led_exposures_s.items()}, "iso": self.iso, "aperture": self.aperture,
                 "calibration": self.calibration, "checkerboard_views": self.checkerboard_views,
                 "overhead_s_per_shot": self.overhead_s_per_shot, "planned_images": len(self.shots())}
 
@@ -326,6 +339,14 @@ def load_plan(path: str | Path) -> CapturePlan:
     repeats = _integer({"repeats": raw.get("repeats", default_repeats)}, "repeats", path, lo=1)
     ex = raw.get("exposures_s", "rig")
     exposures = tuple(rig.exposure_times_s) if ex == "rig" else _exposures(ex, path, "exposures_s")
+    per_led = raw.get("led_exposures_s", {})
+    if not isinstance(per_led, dict):
+        raise _fail("[led_exposures_s] must be a table of LED id = [exposure times]", path)
+    led_exposures = {}
+    for k, v in per_led.items():
+        if not k.strip().isdigit() or int(k) not in leds:
+            raise _fail(f"[led_exposures_s] key {k!r} is not one of the plan's LEDs {list(leds)}", path)
+        led_exposures[int(k)] = _exposures(v, path, f"led_exposures_s.{k}")
 
     def num(key, default, **kw):
         return _number({key: raw.get(key, default)}, key, path, **kw)
@@ -375,7 +396,8 @@ def load_plan(path: str | Path) -> CapturePlan:
 
     return CapturePlan(
         path=str(path), text_sha256=hashlib.sha256(text).hexdigest(), rig=rig, rig_path=rig_path,
-        sample=sample.strip(), rotations=rots, leds=leds, repeats=repeats, exposures_s=exposures, iso=iso,
+        sample=sample.strip(), rotations=rots, leds=leds, repeats=repeats, exposures_s=exposures,
+        led_exposures_s=led_exposures, iso=iso,
         aperture=aperture, calibration=calib, calibration_exposure_s=cal_exp, calibration_iso=cal_iso,
         calibration_aperture=cal_ap, checkerboard_views=views, checkerboard_leds=cb_leds,
         checkerboard_exposure_s=cb_exp, checkerboard_iso=cb_iso, checkerboard_aperture=cb_ap,
@@ -396,6 +418,8 @@ def describe(plan: CapturePlan, remaining: list[Shot] | None = None) -> str:
         f"exposures {len(plan.exposures_s)} per sequence: "
         + ", ".join(f"{t:g}" for t in plan.exposures_s) + f" s at ISO {plan.iso}, f/{plan.aperture:g}",
     ]
+    for led, times in sorted(plan.led_exposures_s.items()):
+        lines.append(f"  LED {led:2d}: {len(times)} exposure(s): " + ", ".join(f"{t:g}" for t in times) + " s")
     if plan.calibration:
         lines.append(f"calibration image per rotation: all LEDs, {plan.calibration_exposure_s:g} s at ISO "
                      f"{plan.calibration_iso}, f/{plan.calibration_aperture:g}")

@@ -1,0 +1,122 @@
+"""``glossrig design exposures``: per-LED exposures for one material, as a capture plan.
+
+Chooses, per LED, the exposures of the rig's table that keep every pixel's HDR
+estimate within a noise target at the least capture time
+(:mod:`glossrig.core.exposure_plan`), and writes a capture plan in the format of
+``scenes/plans/*.toml`` (:data:`glossrig.hardware.plan.PLAN_FORMAT`) with the
+per-LED exposures in its ``[led_exposures_s]`` table. The written plan is read back
+with the hardware layer's loader, which prints its time against the thesis's full
+plan (table 4.1, three sequences per LED).
+
+    glossrig design exposures --rig scenes/thesis_rig.toml --material sample_2_6 \\
+        --leds middle --rotations 0 --out plan.toml
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from glossrig.core.errors import InputError
+
+HELP = "per-LED exposures keeping the HDR noise within a target at least capture time; writes a capture plan"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--rig", required=True, help="rig file (scenes/*.toml)")
+    p.add_argument("--material", required=True,
+                   help="extended-Ward or Lambertian material: a scenes/materials name, ward:..., lambert:ALBEDO")
+    p.add_argument("--out", required=True, help="capture plan to write (.toml)")
+    p.add_argument("--leds", default="middle", help="LEDs: middle (default, the thesis's), all, a row or ids")
+    p.add_argument("--rotations", default=None, help="sample rotations, degrees (default: the rig's)")
+    p.add_argument("--noise", type=float, default=0.03,
+                   help="target relative standard deviation of every pixel's HDR estimate from sensor noise "
+                        "(default 0.03)")
+    p.add_argument("--margin", type=float, default=1.1,
+                   help="brightness margin: saturation judged at margin x, noise at 1/margin x the predicted "
+                        "signal, so the plan holds for the material's class (default 1.1)")
+    p.add_argument("--scale", type=float, default=0.25, help="image scale the pixels are predicted at (default 0.25)")
+    p.add_argument("--overhead", type=float, default=None,
+                   help="seconds per shot beyond the exposure (default: the rig's [capture] figure, else the "
+                        "thesis's measured 9.94 s)")
+    p.add_argument("--sample", default=None, help="material label for the plan (default: the material)")
+    p.add_argument("--report", default=None, help="also write the per-LED figures as JSON here")
+
+
+def plan_text(plan, rig_path: str, sample: str, leds, overhead_s: float) -> str:
+    """The capture plan TOML of an :class:`~glossrig.core.exposure_plan.ExposurePlan`."""
+    def num(x):
+        return repr(float(x))
+
+    per = plan.exposures()
+    lines = [
+        f"# Exposure plan for {plan.material.label} (glossrig design exposures): per LED the exposures of the",
+        f"# rig's table that keep every pixel's HDR noise within {100 * plan.noise_target:g} % (sensor noise; where",
+        "# the whole table misses half of that, within twice the whole table's), brightness margin "
+        f"{plan.margin:g}, one sequence per LED.",
+        f"# {plan.shots_per_rotation()} shots per rotation, {plan.exposure_s_per_rotation():.1f} s of exposure, "
+        f"{plan.time_s_per_rotation() / 60:.1f} min with {overhead_s:.2f} s per shot.",
+        "",
+        f"rig = {json.dumps(str(rig_path))}",
+        f"sample = {json.dumps(sample)}",
+        "rotations = [" + ", ".join(f"{r:g}" for r in plan.rotations) + "]",
+        "leds = [" + ", ".join(str(i) for i in leds) + "]",
+        "repeats = 1",
+        "exposures_s = \"rig\"               # LEDs not listed below (none)",
+        "calibration = true",
+        f"overhead_s_per_shot = {overhead_s:.4f}",
+        "",
+        "[led_exposures_s]",
+    ]
+    lines += [f"{led} = [" + ", ".join(num(t) for t in per[led]) + "]" for led in leds]
+    return "\n".join(lines) + "\n"
+
+
+def run(args) -> int:
+    from glossrig.core.exposure_plan import plan_exposures
+    from glossrig.core.materials import parse_material
+    from glossrig.core.rig import REPO_ROOT, load_rig
+    from glossrig.hardware.plan import THESIS_OVERHEAD_S, THESIS_SEQUENCE_S, format_duration, load_plan
+
+    from .design import _floats
+
+    rig = load_rig(args.rig)
+    material = parse_material(args.material)
+    leds = rig.select_leds(args.leds)
+    rots = _floats(args.rotations, "--rotations") if args.rotations else list(rig.sample_rotations)
+    overhead = args.overhead
+    if overhead is None:
+        overhead = float(rig.raw.get("capture", {}).get("overhead_s_per_shot", THESIS_OVERHEAD_S))
+    if not (math.isfinite(overhead) and overhead >= 0):
+        raise InputError(f"--overhead must be >= 0 s, got {overhead}")
+    out = Path(args.out)
+    if not out.parent.is_dir():
+        raise InputError("output folder does not exist", path=out)
+    plan = plan_exposures(rig, material, leds, rots, noise_target=args.noise, margin=args.margin, scale=args.scale,
+                          overhead_s=overhead)
+    rig_ref = Path(args.rig).resolve()
+    if not Path(args.rig).is_absolute() and (REPO_ROOT / args.rig).resolve() == rig_ref:
+        rig_ref = Path(args.rig)           # repository-relative: the plan loader finds it from anywhere
+    out.write_text(plan_text(plan, str(rig_ref), args.sample or material.label, leds, overhead))
+    loaded = load_plan(out)            # the hardware layer must accept what it is given
+    est = loaded.estimate()
+    n_rot = len(rots)
+    full_floor = len(leds) * 3 * sum(THESIS_SEQUENCE_S)
+    full_time = len(leds) * 3 * (sum(THESIS_SEQUENCE_S) + len(THESIS_SEQUENCE_S) * overhead)
+    print(f"wrote {out}: {plan.shots_per_rotation()} shots per rotation over {len(leds)} LEDs")
+    for e in plan.leds:
+        print(f"  LED {e.led:2d}: " + ", ".join(f"{t:g}" for t in e.exposures_s) + " s   worst noise "
+              f"{100 * e.worst_noise:.2f} % on {100 * e.target_fraction:.0f} % of {e.lit_pixels} pixels")
+    print(f"time per rotation {format_duration(plan.time_s_per_rotation())} "
+          f"(exposures {format_duration(plan.exposure_s_per_rotation())}); the whole plan ({n_rot} rotation(s), "
+          f"with calibration images) {format_duration(est.estimate_s)}")
+    print(f"thesis plan per rotation ({len(leds)} LEDs x 3 sequences x 18 exposures): {format_duration(full_time)} "
+          f"at {overhead:.2f} s per shot, exposures alone {format_duration(full_floor)} "
+          "(thesis 4.2.3 states 120 min)")
+    if args.report:
+        doc = plan.to_json()
+        doc.update({"plan": str(out), "time_s_per_rotation": plan.time_s_per_rotation(),
+                    "plan_estimate_s": est.estimate_s, "thesis_plan_s_per_rotation": full_time,
+                    "thesis_floor_s_per_rotation": full_floor})
+        Path(args.report).write_text(json.dumps(doc, indent=1) + "\n")
+    return 0
