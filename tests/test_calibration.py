@@ -180,21 +180,23 @@ def test_camera_file_validation(tmp_path, camera_json):
 # ------------------------------------------------------------------ poses
 
 def test_poses_recover_the_twin_geometry(sample_capture, geometry):
-    """Pose step alone (the twin's true intrinsics). Measured at scale 0.15:
-    holder 0.09 deg / 0.1 mm, cylinder 0.05 deg, cylinder in holder 0.09 deg /
-    0.25 mm - the last mostly the twin's 0.02 mm lift of the cylinder markers
-    (validation/calibration_report.md). Tolerances leave ~1.5x headroom."""
+    """Pose step alone (the twin's true intrinsics). Measured at scale 0.15 with the
+    area-sampled twin (twin/render.py, seed 2): holder 0.24 deg / 0.18 mm, cylinder
+    0.015 deg / 0.08 mm, cylinder in holder 0.25 deg / 0.14 mm. The holder tilt at this
+    scale is worse than with the former single-bilinear twin (0.13 deg; seed 3: 0.21
+    against 0.10 deg, both about the holder's y axis), the cylinder better (0.23 ->
+    0.08 mm) - see validation/calibration_report.md. Tolerances ~1.2-2.5x the measured."""
     t = _truth(sample_capture)
     Rh, th = np.array(t["camera_R_holder_to_camera"]), np.array(t["camera_t_mm"])
     Rci, tci = np.array(t["cylinder_R_in_holder"]), np.array(t["cylinder_t_mm"])
     h, c = geometry["holder"], geometry["cylinder"]
-    assert rotation_angle_deg(h["R"], Rh) < 0.15
-    assert np.linalg.norm(h["t_mm"] - th) < 0.2
-    assert rotation_angle_deg(c["R"], Rh @ Rci) < 0.08
-    assert np.linalg.norm(c["t_mm"] - (Rh @ tci + th)) < 0.35
+    assert rotation_angle_deg(h["R"], Rh) < 0.3
+    assert np.linalg.norm(h["t_mm"] - th) < 0.25
+    assert rotation_angle_deg(c["R"], Rh @ Rci) < 0.05
+    assert np.linalg.norm(c["t_mm"] - (Rh @ tci + th)) < 0.2
     ch = geometry["cylinder_in_holder"]
-    assert rotation_angle_deg(ch["R"], Rci) < 0.15
-    assert np.linalg.norm(ch["t_mm"] - tci) < 0.4
+    assert rotation_angle_deg(ch["R"], Rci) < 0.3
+    assert np.linalg.norm(ch["t_mm"] - tci) < 0.25
     # camera centre in the holder frame: the nominal rig puts it on +z at distance_to_axis
     C = -Rh.T @ th
     assert np.linalg.norm(geometry["camera_in_holder"]["centre_mm"] - C) < 2.0
@@ -204,8 +206,10 @@ def test_poses_recover_the_twin_geometry(sample_capture, geometry):
 
 
 def test_detected_corners_lie_on_the_projected_truth(sample_capture, geometry):
-    """Corner detection before PnP: every corner within 0.6 px of where the true
-    pose puts it (measured: <= 0.3 px at this scale), in the thesis's order."""
+    """Corner detection before PnP: every corner within 0.8 px of where the true
+    pose puts it (measured at this scale: holder outer corners 0.49-0.68 px - their
+    edges have contrast in the red channel only -, white patch <= 0.22 px, cylinder
+    <= 0.3 px), in the thesis's order."""
     from glossrig.core.rig import load_rig
 
     rig = load_rig(RIG)
@@ -217,7 +221,7 @@ def test_detected_corners_lie_on_the_projected_truth(sample_capture, geometry):
                      (cylinder_marker_corners(rig), geometry["corners_px"]["cylinder"])):
         proj, _ = cv2.projectPoints(obj, cv2.Rodrigues(R)[0], tt, K, d)
         err = np.linalg.norm(proj.reshape(-1, 2) - img, axis=1)
-        assert err.max() < 0.6, err
+        assert err.max() < 0.8, err
 
 
 def test_edge_refinement_beats_corner_pnp(sample_capture, geometry):

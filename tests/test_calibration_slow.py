@@ -5,10 +5,10 @@ Targets (issue 3) and where the twin stops them being met - numbers and causes i
 validation/calibration_report.md:
 * intrinsics: focal lengths within 0.5 %, principal point within 5 px, RMS < 0.3 px - met;
 * poses: 0.2 mm and 0.05 deg - met for the holder translation and the cylinder's
-  rotation; the holder's tilt (a 24 mm planar marker: 0.05 deg moves its edges by
-  0.007-0.012 px) comes out at ~0.1 deg, and the cylinder depth carries a 0.26 mm
-  bias from the twin's 0.02 mm lift of the cylinder markers. Those are asserted at
-  the measured level with headroom, so a regression still fails.
+  rotation and position; the holder's tilt (a 24 mm planar marker: 0.05 deg moves its
+  edges by 0.007-0.012 px) is noise-limited: 0.020 / 0.136 / 0.040 deg for seeds
+  2 / 3 / 4 (this test's capture is seed 2). Asserted at the level of the spread over
+  seeds, so a regression still fails.
 """
 from __future__ import annotations
 
@@ -60,9 +60,9 @@ def test_pose_targets_at_quarter_scale(captures, tmp_path):
     # met: holder position, cylinder orientation
     assert np.linalg.norm(g["holder"]["t_mm"] - th) < 0.2
     assert rotation_angle_deg(g["cylinder"]["R"], Rh @ Rci) < 0.05
-    # measured 0.10 deg, 0.10 deg, 0.21 mm (see module docstring)
+    # seed 2 measured 0.020 deg, 0.012 deg, 0.026 mm; seeds 3-4 up to 0.136 deg, 0.153 deg, 0.09 mm
     assert rotation_angle_deg(g["holder"]["R"], Rh) < 0.15
     assert rotation_angle_deg(g["cylinder_in_holder"]["R"], Rci) < 0.15
-    assert np.linalg.norm(g["cylinder_in_holder"]["t_mm"] - tci) < 0.3
+    assert np.linalg.norm(g["cylinder_in_holder"]["t_mm"] - tci) < 0.12
     # the refinement beats the thesis's corner PnP by an order of magnitude in holder tilt
     assert rotation_angle_deg(g["holder"]["corner_pnp"]["R"], Rh) > 5 * rotation_angle_deg(g["holder"]["R"], Rh)

@@ -176,7 +176,7 @@ def simulate_checkerboard(rig, out: Path, scale: float, seed: int, views: int, s
     sensor = SensorModel.from_rig(rig)
     R, t = rig.camera.pose()
     spec = SceneSpec(sample_radius=rig.cylinder_radius, camera_R=R, camera_t=t, canvas=lens.canvas,
-                     focal=lens.focal, spp=max(spp, 8))
+                     focal=lens.focal, spp=lens.canvas_spp(max(spp, 8)))
     man = Manifest(folder=out, rig=str(Path(rig.path).resolve()), material="checkerboard",
                    meta={"rig_name": rig.name, "source": "glossrig twin", "scale": scale})
     poses = checkerboard_poses(rig, lens, views, seed)

@@ -52,7 +52,7 @@ class VirtualRig:
         self.intensity = float(rig.section("leds")["radiant_intensity_W_sr"])
         self._workdir = new_workdir()
         spec = SceneSpec(sample_radius=self.sample_radius, camera_R=self.camera_R, camera_t=self.camera_t,
-                         canvas=self.lens.canvas, focal=self.lens.focal, spp=spp, led_positions=self.led_positions)
+                         canvas=self.lens.canvas, focal=self.lens.focal, spp=self.lens.canvas_spp(spp), led_positions=self.led_positions)
         self._spec = spec
         self.scene, self.params = sample_scene(rig, material, spec, Path(self._workdir.name))
         self._points = None
@@ -156,7 +156,7 @@ class VirtualRig:
         return {
             "material": self.material.to_json(),
             "rig": {"path": self.rig.path, "name": self.rig.name},
-            "scale": self.scale, "seed": self.seed, "spp": self.spp,
+            "scale": self.scale, "seed": self.seed, "spp": self.spp, "supersample": self.lens.supersample,
             "image_size": list(self.lens.size),
             "camera_matrix": self.lens.K.tolist(), "distortion": list(cam.distortion),
             "camera_R_holder_to_camera": self.camera_R.tolist(), "camera_t_mm": self.camera_t.tolist(),

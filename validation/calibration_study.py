@@ -16,9 +16,7 @@ validation/calibration_report.md.
    a. sensitivity: how far (px) the holder-marker corners move for a 0.05 deg tilt;
    b. per-edge offsets of the twin image at the TRUE pose (each edge's best
       shift with the pose held at truth) against their noise;
-   c. the cylinder markers' 0.02 mm lift in the twin (twin/geometry.py
-      cylinder_marker_meshes) modelled explicitly: the cylinder depth bias goes;
-   d. a synthetic holder-marker image rendered here exactly (supersampled
+   c. a synthetic holder-marker image rendered here exactly (supersampled
       geometry, Gaussian blur, pixel integration, Bayer, shot noise) - the
       estimator's own accuracy when the image matches its model.
 Writes WORK/calibration_results.json and prints a markdown summary.
@@ -176,7 +174,7 @@ def sensitivity(rig, t: dict) -> dict:
     return out
 
 
-def edge_offsets_at_truth(capture: Path, rig, lift_mm: float = 0.0) -> dict:
+def edge_offsets_at_truth(capture: Path, rig) -> dict:
     """Each marker edge's best shift (px, with its noise std) when the pose is
     held at the truth: how far the twin's image departs from the model."""
     from scipy.optimize import least_squares
@@ -192,7 +190,6 @@ def edge_offsets_at_truth(capture: Path, rig, lift_mm: float = 0.0) -> dict:
     fr = read_raw(capture / "calibration_rp000.dng")
     lin = linearize(fr)
     cid = channel_index(lin.shape, fr.cfa)
-    f = (rig.cylinder_radius + lift_mm) / rig.cylinder_radius
     from glossrig.core.markers import cylinder_marker_corners, holder_marker_corners
 
     def px(a, b):
@@ -205,7 +202,7 @@ def edge_offsets_at_truth(capture: Path, rig, lift_mm: float = 0.0) -> dict:
     half_c = float(np.clip(0.25 * px(cc[2], cc[3]), 2.5, 15))
     out = {"half_px": {"holder": half_h, "cylinder": half_c}}
     for name, edges, half in (("holder", P.holder_edges(rig), half_h),
-                              ("cylinder", [e * [f, 1, f] for e in P.cylinder_edges(rig)], half_c)):
+                              ("cylinder", P.cylinder_edges(rig), half_c)):
         offs = []
         for E in edges:
             ideal = P._project_ideal(E, R, tt, K)
@@ -252,7 +249,7 @@ def synthetic_holder(rig, t: dict, seed: int = 0, blur: float = 0.4, ss: int = 4
     ``jitter=False`` samples each pixel on a regular ss x ss sub-grid, which
     quantises edges that run along pixel rows/columns to 1/ss px - a stand-in
     for any renderer whose pixel response depends on the sub-pixel phase (the
-    twin's bilinear lens resampling is one)."""
+    twin's former single bilinear lens read was one; twin/render.py)."""
     from glossrig.core import poses as P
     from glossrig.core.markers import holder_marker_corners
 
@@ -337,24 +334,6 @@ def main() -> int:
     t = json.loads((cap / "truth.json").read_text())
     results["sensitivity_0p05deg"] = sensitivity(rig, t)
     results["edge_offsets_at_truth"] = edge_offsets_at_truth(cap, rig)
-    results["edge_offsets_at_truth_lift0p02"] = {"cylinder": edge_offsets_at_truth(cap, rig, 0.02)["cylinder"]}
-    # cylinder pose with the twin's marker lift modelled
-    from glossrig.core import poses as P
-    from glossrig.core.raw import linearize, read_raw
-
-    K, dist = np.array(t["camera_matrix"]), np.array(t["distortion"])
-    fr = read_raw(cap / "calibration_rp000.dng")
-    lin = linearize(fr)
-    base = P.marker_poses(lin, fr.cfa, rig, K, dist)
-    f = (rig.cylinder_radius + 0.02) / rig.cylinder_radius
-    fit = P.refine_pose_edges(lin, fr.cfa, K, dist, base["cylinder"]["R"], base["cylinder"]["t_mm"],
-                              [e * [f, 1, f] for e in P.cylinder_edges(rig)],
-                              [float(np.clip(0.25 * np.sqrt(q.area), 2.5, 15)) for q in base["detection"].cylinder
-                               for _ in range(4)])
-    Rh, th = np.array(t["camera_R_holder_to_camera"]), np.array(t["camera_t_mm"])
-    results["cylinder_with_lift_model"] = {
-        "plain_model": {"rot_deg": rot_err(base["cylinder"]["R"], Rh), "t_mm": (base["cylinder"]["t_mm"] - th).tolist()},
-        "lifted_model": {"rot_deg": rot_err(fit["R"], Rh), "t_mm": (fit["t"] - th).tolist()}}
     results["synthetic_holder"] = [synthetic_holder(rig, t, seed=k) for k in range(3)]
     results["synthetic_holder_regular_subgrid"] = [synthetic_holder(rig, t, seed=k, jitter=False) for k in range(3)]
     (work / "calibration_results.json").write_text(json.dumps(results, indent=1))
@@ -392,10 +371,6 @@ def main() -> int:
         o = results["edge_offsets_at_truth"][k]
         print(f"{k} edge offsets at the true pose (px): " +
               ", ".join(f"{x['offset_px']:+.3f}+-{x['std_px']:.3f}" for x in o))
-    o = results["edge_offsets_at_truth_lift0p02"]["cylinder"]
-    print("cylinder edge offsets with the 0.02 mm lift modelled (px): " +
-          ", ".join(f"{x['offset_px']:+.3f}+-{x['std_px']:.3f}" for x in o))
-    print("cylinder pose, plain vs lift-modelled:", json.dumps(results["cylinder_with_lift_model"]))
     for key in ("synthetic_holder", "synthetic_holder_regular_subgrid"):
         for k, s in enumerate(results[key]):
             print(f"{key} (seed {k}): rot deg [about holder x, y, z] (noise sd), dt mm:",
