@@ -41,7 +41,7 @@ ROWS, PIXELS, FIT_ROWS = 12_000, 3_000, 3_000
 CAUSES = {"none": (0, 0, "twin"), "black_level_offset": (3, 15, "rewrite"),
           "sensor_nonlinearity": (0.01, 0.05, "rewrite"), "stray_light": (0.002, 0.01, "twin"),
           "vignetting": (0.1, 0.3, "twin"), "hot_pixels": (1e-4, 1e-3, "twin"), "led_drift": (0.01, 0.05, "twin"),
-          "led_emission": (10.0, 60.0, "twin"), "led_position_error": (1.0, 4.0, "twin"),
+          "led_emission": (5.0, 30.0, "twin"), "led_position_error": (1.0, 4.0, "twin"),
           "sample_radius_error": (0.2, 1.0, "twin"), "sample_rotation_offset": (1.0, 5.0, "twin")}
 SIGNED = {"sample_radius_error", "sample_rotation_offset"}
 
@@ -120,6 +120,7 @@ def trial(k: int, work: Path, a, null: Path, fit: Path, ref) -> dict:
     import glossrig.core.diagnose.frames as frames
     import glossrig.core.diagnose.geometry as geometry
     from glossrig.core.diagnose import diagnose
+    from glossrig.core.errors import InputError
 
     catalogue.MAX_BRDF_ROWS, frames.MAX_PIXELS, geometry.FIT_ROWS = ROWS, PIXELS, FIT_ROWS
     rng = np.random.default_rng([2026, k])
@@ -139,14 +140,17 @@ def trial(k: int, work: Path, a, null: Path, fit: Path, ref) -> dict:
         rewrite_capture(null, cap, cause, value)
     else:
         simulate(cap, 1000 + k, f"{cause}={value:.6g}" if cause != "none" else None)
-    rep = diagnose(cap, a.reference, a.camera, a.lamps, work / f"t{k:03d}_report", fit=fit,
-                   log=lambda *x: None, reference_measured=ref, plots=False)
+    try:
+        rep = diagnose(cap, a.reference, a.camera, a.lamps, work / f"t{k:03d}_report", fit=fit,
+                       log=lambda *x: None, reference_measured=ref, plots=False)
+    except InputError as e:       # the pipeline refuses the capture: a failed trial, kept as such
+        rep = {"verdict": "refused", "causes": [], "error": str(e)}
     c = next((c for c in rep["causes"] if c["name"] == cause), None)
     res = {"trial": k, "truth": cause, "value": value, "true_magnitude": true_magnitude(cause, value, cap),
            "verdict": rep["verdict"], "estimate": c["magnitude"] if c else None,
            "gain": c["gain"] if c else None, "significant": c["significant"] if c else None,
            "top": [(x["name"], round(x["gain"], 4), x["significant"]) for x in rep["causes"][:4]],
-           "time_s": time.time() - t0}
+           "time_s": time.time() - t0, **({"error": rep["error"]} if "error" in rep else {})}
     if how != "rewrite":
         for f in cap.glob("*.dng"):          # keep truth and manifest, drop the raw files
             f.unlink()
