@@ -1,0 +1,439 @@
+"""Real measured BRDFs on the twin: what the thesis's model gets wrong (issue 7, real data).
+
+    nice -n 5 python validation/diagnose/rgl_study.py --work /tmp/rgl_study \
+        [--camera camera.json --lamps lamps.json] [--rotations 0,90]
+
+The four RGL materials of ../shared/data/rgl (Dupuy & Jakob, "An Adaptive
+Parameterization for Efficient Material Acquisition and Rendering", SIGGRAPH Asia
+2018) are measured on the twin as the real rig would measure them: middle-row LEDs,
+scale 0.25, the real white paper (``measured:paper_white_rgb.bsdf``) as the diffuse
+reference, thesis normalisation (Lambertian reference of albedo 0.8). Each capture
+goes through ``glossrig extract``, ``glossrig fit`` and ``glossrig diagnose``
+(with ``--reference-brdf`` so that the reference cause can be tested). Then every
+model of :mod:`glossrig.core.diagnose.material_models` is fitted to the extracted
+samples and scored against the measured BRDF itself (the ground truth,
+:mod:`glossrig.twin.measured_brdf`) at the rig's angles and on a held-out grid of
+directions the rig never saw (theta_d > 30 deg). Writes WORK/study.json, the plots
+and validation/diagnose/rgl_study.md.
+
+Resumable: every stage checks for its output and skips what exists. The camera and
+lamp calibrations are made once (checkerboard and transparency-sheet captures) unless
+given.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "validation"))
+from pipeline_study import RIG, glossrig, simulate  # noqa: E402  (one way to script the chain)
+
+RGL = Path("/work/shared/data/rgl") if not (ROOT.parent / "shared/data/rgl").is_dir() else ROOT.parent / "shared/data/rgl"
+MATERIALS = ("satin_rosaline_rgb", "vch_golden_yellow_rgb", "cc_ibiza_sunset_rgb", "paper_white_rgb")
+REFERENCE = RGL / "paper_white_rgb.bsdf"
+
+
+def calibrations(work: Path, a) -> tuple[Path, Path]:
+    cam, lamps = work / "camera.json", work / "lamps.json"
+    if a.camera and not cam.exists():
+        shutil.copy(a.camera, cam)
+    if a.lamps and not lamps.exists():
+        shutil.copy(a.lamps, lamps)
+    if not cam.exists():
+        checker = work / "checker"
+        if not (checker / "capture.json").exists():
+            glossrig("simulate", "--rig", RIG, "--target", "checkerboard", "--views", 12, "--scale", a.scale,
+                     "--seed", 1, "--no-progress", "--out", checker)
+        glossrig("calibrate", "camera", checker, "--out", cam)
+    if not lamps.exists():
+        spec = simulate(work / "specular", "transparency_sheet", a.scale, 2, "0", 1)
+        glossrig("calibrate", "lamps", spec, "--camera", cam, "--out", lamps)
+    return cam, lamps
+
+
+def captures(work: Path, a) -> dict:
+    """Reference and sample captures, then extract / fit / diagnose per material."""
+    cam, lamps = calibrations(work, a)
+    ref = simulate(work / "reference", f"measured:{REFERENCE}", a.scale, 3, a.rotations, 1)
+    out = {}
+    for k, m in enumerate(a.materials.split(",")):
+        cap = simulate(work / m, f"measured:{RGL / (m + '.bsdf')}", a.scale, 10 + k, a.rotations, 1)
+        sp, fj, dg = work / f"{m}.parquet", work / f"{m}.fit.json", work / f"{m}.diagnose"
+        out[m] = {"capture": str(cap), "samples": str(sp), "fit": str(fj), "diagnose": str(dg)}
+        err = None
+        if not sp.exists():
+            err = _stage("extract", cap, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", sp,
+                         "--no-progress")
+        if err is None and not fj.exists():
+            err = _stage("fit", sp, "--out", fj)
+        if err is None and a.diagnose and not (dg / "report.json").exists():
+            err = _stage("diagnose", cap, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", dg,
+                         "--reference-brdf", REFERENCE, "--no-progress")
+        if err:
+            out[m]["failed"] = err
+            print(f"[{m}] {err}", flush=True)
+    return out
+
+
+def _stage(*args) -> str | None:
+    """Run one glossrig stage; its last error line when it fails (the study goes on)."""
+    import subprocess
+
+    r = subprocess.run([sys.executable, "-m", "glossrig.cli.main", *map(str, args)], capture_output=True, text=True)
+    if r.returncode == 0:
+        return None
+    lines = [x for x in r.stderr.strip().splitlines() if x.strip()]
+    return f"glossrig {args[0]} failed (exit {r.returncode}): {lines[-1] if lines else ''}"
+
+ALBEDO = 0.8                              # the thesis's reference albedo (eq. 4.78)
+FRESNEL_GRID = (1.2, 1.3, 1.4, 1.5, 1.7, 2.0, 2.5, 3.0)
+FLOOR = 0.01                              # 1/sr: relative errors only where the truth exceeds this
+
+
+def heldout_grid() -> dict:
+    """Directions the rig never sees: theta_in, theta_out in 2.5..82.5 deg, four azimuths of the
+    light, 24 relative azimuths, kept where theta_d > 30 deg (the rig stays below ~27 deg)."""
+    import numpy as np
+
+    from glossrig.core.angles import brdf_angles, local_direction
+
+    d = np.radians
+    ti, to, pi_, dp = np.meshgrid(d(np.arange(2.5, 85, 5)), d(np.arange(2.5, 85, 5)), d([0, 45, 90, 135]),
+                                  d(np.arange(0, 360, 15)), indexing="ij")
+    wi, wo = local_direction(ti.ravel(), pi_.ravel()), local_direction(to.ravel(), (pi_ + dp).ravel())
+    a = brdf_angles(wi, wo, np.broadcast_to([0.0, 0, 1], wi.shape), np.broadcast_to([1.0, 0, 0], wi.shape))
+    keep = a["theta_d"] > d(30)
+    return {k: v[keep] for k, v in a.items()}
+
+
+def errors(pred, y, a) -> dict:
+    """Relative error of a model against the measured BRDF (luminance) where the truth > FLOOR;
+    the lobe subset is theta_h < 10 deg."""
+    import numpy as np
+
+    ok = y > FLOOR
+    rel = pred[ok] / y[ok] - 1
+    lobe = (a["theta_h"][ok] < np.radians(10))
+    return {"median_abs_rel": float(np.median(np.abs(rel))), "p90_abs_rel": float(np.percentile(np.abs(rel), 90)),
+            "median_rel": float(np.median(rel)), "n": int(ok.sum()),
+            "lobe_median_abs_rel": float(np.median(np.abs(rel[lobe]))) if lobe.any() else None, "n_lobe": int(lobe.sum())}
+
+
+def analyse(m: str, run: dict, work: Path, a) -> dict:
+    """Fit each model to the extracted samples and score it against the measured BRDF."""
+    import numpy as np
+
+    from glossrig.core.diagnose import load_fit
+    from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD
+    from glossrig.core.diagnose.material_models import (LUMA, LobeFit, angle_arrays, fit_lobe, fit_weights,
+                                                        fresnel_profile, renormalise)
+    from glossrig.core.fit import fit_samples
+    from glossrig.core.samples import read_samples
+    from glossrig.twin.measured_brdf import MeasuredBRDF
+
+    print(f"[{m}] analysis", flush=True)
+    t = read_samples(run["samples"])
+    A = angle_arrays(t)
+    truth, paper = MeasuredBRDF(RGL / f"{m}.bsdf"), MeasuredBRDF(REFERENCE)
+    y_true = truth.table(t) @ LUMA
+    rgb = t[["r", "g", "b"]].to_numpy(float)
+    corr = t.copy()
+    corr[["r", "g", "b"]] = renormalise(rgb, paper.table(t), ALBEDO)
+    y0, y1 = rgb @ LUMA, corr[["r", "g", "b"]].to_numpy(float) @ LUMA
+    H = heldout_grid()
+    y_held = truth.luminance(H["theta_in"], H["phi_in"], H["theta_out"], H["phi_out"])
+
+    def score(f: LobeFit) -> dict:
+        return {"params": f.as_dict(), "rig": errors(f.predict(A), y_true, A), "heldout": errors(f.predict(H), y_held, H)}
+
+    out = {"material": m, "n_samples": len(t), "theta_d_max_deg": float(np.degrees(A["theta_d"].max())),
+           "n_heldout": int(len(y_held)),
+           "data": {"thesis_normalised": errors(y0, y_true, A), "reference_renormalised": errors(y1, y_true, A)}}
+    wd = load_fit(run["fit"])
+    out["thesis"] = score(LobeFit.from_ward(wd))
+    wf = fit_samples(corr, channels=["luminance"]).fits["luminance"].to_json()
+    w_ref = LobeFit("ward", *(wf[k] for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")),
+                    stderr={k: wf.get(k + "_stderr") for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")})
+    out["reference"] = score(w_ref)
+    rng = np.random.default_rng(0)
+    idx = np.sort(rng.choice(len(t), min(a.fit_rows, len(t)), replace=False))
+    As = {k: v[idx] for k, v in A.items()}
+    W = fit_weights(t)[idx]
+    start = (w_ref.alpha_x, w_ref.alpha_y, w_ref.lobe_rotation)
+    out["ggx_only"] = score(fit_lobe(As, y0[idx], W, "ggx", start))
+    g = fit_lobe(As, y1[idx], W, "ggx", start)
+    out["reference_ggx"] = score(g)
+    start = (g.alpha_x, g.alpha_y, g.lobe_rotation)
+    led = np.asarray(t["led"])[idx]
+    leds = np.unique(led)
+    folds = [(~np.isin(led, leds[k::4]), np.isin(led, leds[k::4])) for k in range(min(4, len(leds)))]
+    prof = fresnel_profile(As, y1[idx], W, folds, FRESNEL_GRID, "ggx", start)
+    e = np.array(prof["error"])
+    free = fit_lobe(As, y1[idx], W, "ggx", start, fit_n=True)
+    truth_err = [score(f)["heldout"]["median_abs_rel"] for f in prof["fits"]]
+    flat = bool((e.max() - e.min()) / e.min() < GAIN_THRESHOLD)
+    out["fresnel"] = {"grid": list(FRESNEL_GRID), "rig_heldout_error": e.tolist(),
+                      "rig_heldout_relative_range": float((e.max() - e.min()) / e.min()),
+                      "truth_heldout_median_abs_rel": truth_err, "free_fit": score(free), "identifiable": not flat,
+                      "folds": "leave two LEDs out (interleaved pairs)"}
+    k = int(np.argmin(e))
+    out["reference_ggx_fresnel"] = score(prof["fits"][k])
+    return out
+
+
+def diagnose_summary(run: dict) -> dict | None:
+    dg = Path(run["diagnose"]) / "report.json"
+    if not dg.exists():
+        return None
+    rep = json.loads(dg.read_text())
+    return {"verdict": rep["verdict"], "base_error": rep["base_error"],
+            "causes": [{k: c.get(k) for k in ("name", "gain", "significant", "identifiable", "params", "stderr",
+                                              "note")} for c in rep["causes"]]}
+
+
+STAGES = (("thesis", "thesis: Ward fit of the Lambertian-0.8-normalised data"),
+          ("reference", "(a) reference: Ward fit of data renormalised with the paper's own BRDF"),
+          ("ggx_only", "(b) lobe alone: GGX fit of the thesis-normalised data"),
+          ("reference_ggx", "(a)+(b): GGX fit of the renormalised data"))
+
+
+def _lobe(d: dict):
+    from glossrig.core.diagnose.material_models import LobeFit
+
+    return LobeFit(d["kind"], d["rho_d"], d["rho_s"], d["alpha_x"], d["alpha_y"], d["lobe_rotation"], d.get("n"))
+
+
+def paper_albedo(theta_out_deg: float = 0.0, n: int = 400_000) -> float:
+    """Directional albedo (luminance) of the reference paper, int f cos dw_i (cosine-weighted MC)."""
+    import numpy as np
+
+    from glossrig.twin.measured_brdf import MeasuredBRDF
+
+    rng = np.random.default_rng(0)
+    u1, u2 = rng.random(n), rng.random(n)
+    th, ph = np.arcsin(np.sqrt(u1)), 2 * np.pi * u2
+    return float(np.mean(MeasuredBRDF(REFERENCE).luminance(th, ph, np.radians(theta_out_deg), 0.0)) * np.pi)
+
+
+def plots(results: dict, work: Path, outdir: Path) -> None:
+    """Per material: in-plane slices (truth, thesis, extensions; held-out theta_d > 30 deg shaded)
+    and the Fresnel profiles."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from glossrig.core.angles import brdf_angles, local_direction
+    from glossrig.twin.measured_brdf import MeasuredBRDF
+
+    outdir.mkdir(parents=True, exist_ok=True)
+    for m, r in results.items():
+        if "failed" in r or m.startswith("_"):
+            continue
+        truth = MeasuredBRDF(RGL / f"{m}.bsdf")
+        fig, axs = plt.subplots(1, 3, figsize=(13, 3.6))
+        for ax, ti in zip(axs[:2], (20.0, 60.0)):
+            to = np.radians(np.linspace(-85, 85, 341))
+            wi = np.broadcast_to(local_direction(np.radians(ti), 0.0), (to.size, 3))
+            wo = local_direction(np.abs(to), np.where(to >= 0, np.pi, 0.0))
+            a = brdf_angles(wi, wo, np.broadcast_to([0.0, 0, 1], wi.shape), np.broadcast_to([1.0, 0, 0], wi.shape))
+            x = np.degrees(to)
+            ax.semilogy(x, np.maximum(truth.luminance(a["theta_in"], a["phi_in"], a["theta_out"], a["phi_out"]),
+                                      1e-3), "k-", lw=2, label="measured (truth)")
+            for key, style in (("thesis", "r--"), ("reference", "m:"), ("reference_ggx", "b-")):
+                ax.semilogy(x, np.maximum(_lobe(r[key]["params"]).predict(a), 1e-3), style, lw=1, label=key)
+            held = np.degrees(a["theta_d"]) > 30
+            ax.fill_between(x, 1e-3, 1e3, where=held, color="0.9", step="mid", label="theta_d > 30 (held out)")
+            ax.set_ylim(max(1e-2, 0.5 * float(np.min(_lobe(r["thesis"]["params"]).predict(a)))), None)
+            ax.set_xlabel("theta_out (deg; < 0: light's side)")
+            ax.set_title(f"{m}: in-plane, theta_in = {ti:g} deg", fontsize=9)
+        axs[0].set_ylabel("luminance BRDF (1/sr)")
+        axs[0].legend(fontsize=7)
+        fr = r["fresnel"]
+        e = np.array(fr["rig_heldout_error"])
+        axs[2].plot(fr["grid"], e / e.min() - 1, "o-", label="rig, held-out LEDs (rel. to min)")
+        axs[2].plot(fr["grid"], fr["truth_heldout_median_abs_rel"], "s-", label="truth at theta_d > 30 (median |rel|)")
+        axs[2].set_xlabel("Schlick n on the GGX lobe")
+        axs[2].set_title("Fresnel: what the rig sees vs what it misses", fontsize=9)
+        axs[2].legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(outdir / f"{m}.png", dpi=80)
+        plt.close(fig)
+
+
+def _pct(x) -> str:
+    return "n/a" if x is None else f"{100 * x:.1f} %"
+
+
+def markdown(results: dict, a) -> str:
+    import numpy as np
+
+    L = ["# Real measured BRDFs on the twin: what the thesis's model gets wrong (issue 7)", "",
+         "Command (resumable; about 40 min on 2 shared cores):", "",
+         "    nice -n 5 python validation/diagnose/rgl_study.py --work /tmp/rgl_study \\",
+         "        --camera CAMERA.json --lamps LAMPS.json      # optional: reuse calibrations of this rig and scale", "",
+         "(The committed run reused the camera and lamp calibrations of validation/recovery_study.py's work folder, "
+         "same rig and scale, and rendered with the twin of commit b37f959.)", "",
+         f"Materials: the RGL measurements of ../shared/data/rgl (Dupuy & Jakob, \"An Adaptive Parameterization "
+         f"for Efficient Material Acquisition and Rendering\", ACM TOG 37(6), SIGGRAPH Asia 2018), rendered by "
+         f"Mitsuba's `measured` plugin. Captures: scale {a.scale}, the 8 middle-row LEDs, rotations {a.rotations}, "
+         f"one repeat, thesis LED fluctuations and sensor noise; diffuse reference: the real white paper "
+         f"(`measured:paper_white_rgb.bsdf`), extraction with the thesis normalisation (Lambertian, albedo "
+         f"{ALBEDO}); `glossrig fit` (luminance) and `glossrig diagnose --reference-brdf`. Ground truth: the "
+         f"measured BRDF itself (`glossrig.twin.measured_brdf`, the plugin the twin renders with), in luminance.", "",
+         "Errors are |f_model / f_true - 1| (median over samples with f_true > "
+         f"{FLOOR} 1/sr; 'lobe' = theta_h < 10 deg) at the rig's own sample angles (all extracted samples) and "
+         "on held-out directions the rig never sees: a grid of theta_in, theta_out in 2.5..82.5 deg, four light "
+         "azimuths and 24 relative azimuths, kept where theta_d > 30 deg. Gain = relative reduction of that "
+         "error against the thesis model. GGX fits use "
+         f"{a.fit_rows} random samples and the objective of `glossrig fit` (eq. 4.81-4.82).", ""]
+    pa = results.get("_paper_albedo")
+    if pa:
+        L += [f"The reference paper's directional albedo (luminance) is {pa['0']:.3f} at normal viewing and "
+              f"{pa['45']:.3f} at 45 deg (the thesis assumes 0.8 everywhere).", ""]
+    L += ["## The named causes", "",
+          "* **(a) Lambertian 0.8 reference** (thesis eq. 4.78). Paper is not Lambertian and its albedo is not "
+          "0.8: the thesis's value is (0.8/pi) f / f_ref. Extension: renormalise every sample with the paper's "
+          "own measured BRDF at that sample's angles, f = f_meas f_ref pi / 0.8 per channel "
+          "(`glossrig.core.diagnose.material_models.renormalise`; parameter-free when f_ref is known).",
+          "* **(b) Ward lobe shape** (eq. 4.79). A Gaussian in tan(theta_h) with a 1/sqrt(cos cos) factor. "
+          "Extension: the anisotropic GGX / Trowbridge-Reitz lobe D G2 / (4 cos_i cos_o) with height-correlated "
+          "Smith masking (Walter et al. 2007; Heitz 2014), anisotropy axes turned as in eq. 4.80; same five "
+          "parameters.",
+          "* **(c) no Fresnel factor**. Extension: Schlick's F(theta_d)/F(0) on the lobe (one parameter, n). "
+          "The rig's theta_d stays below ~27 deg, where F changes by < 1 % for n = 1.5.", "",
+          "The study below measures each extension against the measured BRDF; `glossrig diagnose` (which has "
+          "no ground truth) tests the same causes on the capture alone (held-out LEDs), see each material.", ""]
+    L += ["## Summary (median |relative error|, rig angles / held-out angles)", "",
+          "| material | rig theta_d max | data error, thesis normalisation | data error, reference renormalised | "
+          "thesis model: rig / held-out | (a) reference | (b) GGX alone | (a)+(b) | Fresnel n |",
+          "|---|---|---|---|---|---|---|---|---|"]
+    for m, r in results.items():
+        if m.startswith("_"):
+            continue
+        if "failed" in r:
+            L.append(f"| {m} | - | - | - | {r['failed']} | | | | |")
+            continue
+        cells = [f"{_pct(r[k]['rig']['median_abs_rel'])} / {_pct(r[k]['heldout']['median_abs_rel'])}"
+                 for k, _ in STAGES]
+        fr = r["fresnel"]
+        L.append(f"| {m} | {r['theta_d_max_deg']:.1f} deg | {_pct(r['data']['thesis_normalised']['median_abs_rel'])} | "
+                 f"{_pct(r['data']['reference_renormalised']['median_abs_rel'])} | " + " | ".join(cells) +
+                 f" | {'identifiable' if fr['identifiable'] else 'unidentifiable'} |")
+    L += ["", "## Reading the results", "",
+          "* **Identifiability.** Fresnel (c) is flagged from the rig's own data: its held-out error (LED folds) "
+          "is flat along n in every material measured (column 'Fresnel n'), while the error against the truth at "
+          "theta_d > 30 deg does move along n: the factor matters where the rig does not look, and the rig "
+          "cannot fix it. The row '(a)+(b)+(c) at the profile's minimum' is shown only to make that visible; its "
+          "n is the arg-min of a flat curve, not a measurement, and a free fit of n ends at a bound.",
+          "* **(a) is a data error, (b) a model error.** Renormalising with the paper's BRDF takes the extracted "
+          "data from the 'thesis normalisation' error to the 'reference renormalised' one (the pipeline's own "
+          "floor). Whether a *model* fitted to the corrected data is closer to the truth depends on the lobe: "
+          "Ward's lobe fitted to the thesis-normalised data partly absorbs the reference's angular error, so "
+          "(a) alone can raise the Ward model's error. With the GGX lobe, (a)+(b) has the lower held-out error "
+          "on the glossy materials than (b) alone, but not uniformly the lower rig-angle error (tables below).",
+          "* **What diagnose can and cannot see.** Without ground truth, `glossrig diagnose` scores a cause by "
+          "held-out prediction error on the capture. The GGX lobe is found that way on glossy materials. The "
+          "reference cause changes what is measured, not how well a model predicts it: when the lobe model is "
+          "right (tests/test_material_models.py hides a non-Lambertian reference under a Ward material) it is "
+          "found, but on real materials the lobe misfit dominates and its held-out error rises (large negative "
+          "gains below; for the paper measured against itself the thesis-normalised data is exactly constant, "
+          "so any correction can only lose). Its gain must be read from this ground-truth study.",
+          "* **Held-out angles.** No extension fixes the held-out error of the diffuse paper: a GGX lobe fitted "
+          "to its small rig-angle structure extrapolates badly beyond theta_d = 30 deg, a caution against "
+          "reading rig-angle gains as global ones.", ""]
+    for m, r in results.items():
+        if m.startswith("_"):
+            continue
+        L += ["", f"## {m}", ""]
+        if "failed" in r:
+            L += [f"Not measured: {r['failed']}.", "",
+                  "Cause (inspected on the calibration image): the sample's saturated yellow highlight. Marker "
+                  "detection white-balances on the brightest unclipped pixels "
+                  "(`glossrig.core.marker_detect.white_balance`), which here are the highlight's yellow flanks; "
+                  "the balanced markers are then no longer red. A pipeline limitation this study found, not fixed "
+                  "here.", ""]
+            continue
+        L += [f"{r['n_samples']} extracted samples, {r['n_heldout']} held-out directions. "
+              f"The extracted data itself is off by {_pct(r['data']['thesis_normalised']['median_abs_rel'])} "
+              f"(signed median {_pct(r['data']['thesis_normalised']['median_rel'])}) with the thesis normalisation "
+              f"and by {_pct(r['data']['reference_renormalised']['median_abs_rel'])} after renormalising with the "
+              f"paper's BRDF (what remains is the pipeline's own error).", "",
+              "| model | rig: median (lobe) | held-out: median (lobe) | gain rig / held-out | parameters +- standard error |",
+              "|---|---|---|---|---|"]
+        base = r["thesis"]
+        for k, label in STAGES + (("reference_ggx_fresnel", "(a)+(b)+(c) Schlick Fresnel at the profile's minimum"),):
+            s = r[k]
+            g = [(base[x]["median_abs_rel"] - s[x]["median_abs_rel"]) / base[x]["median_abs_rel"] for x in ("rig", "heldout")]
+            p = s["params"]
+            se = p.get("stderr") or {}
+            ps = ", ".join(f"{q}={p[q]:.4g}" + (f" +- {se[q]:.2g}" if se.get(q) is not None else "")
+                           for q in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation") + (("n",) if p.get("n") else ()))
+            L.append(f"| {label} | {_pct(s['rig']['median_abs_rel'])} ({_pct(s['rig']['lobe_median_abs_rel'])}) | "
+                     f"{_pct(s['heldout']['median_abs_rel'])} ({_pct(s['heldout']['lobe_median_abs_rel'])}) | "
+                     f"{100 * g[0]:+.0f} % / {100 * g[1]:+.0f} % | {ps} |")
+        fr = r["fresnel"]
+        e = np.array(fr["rig_heldout_error"])
+        free = fr["free_fit"]["params"]
+        L += ["", f"**Fresnel (c)**: the held-out error of the rig's own data ({fr['folds']}) changes by "
+              f"{100 * fr['rig_heldout_relative_range']:.3f} % over n = {fr['grid'][0]:g}..{fr['grid'][-1]:g} "
+              f"({'' if fr['identifiable'] else 'flat: '}n is {'identifiable' if fr['identifiable'] else 'NOT identifiable from the rig'}), "
+              f"while the error against the truth at theta_d > 30 deg moves between "
+              f"{_pct(min(fr['truth_heldout_median_abs_rel']))} and {_pct(max(fr['truth_heldout_median_abs_rel']))} "
+              f"along the same n. A free fit of n runs to n = {free['n']:.3g} "
+              f"(bounds 1.05..4; standard error {free['stderr'].get('n', float('nan')):.2g}, which only measures the "
+              f"noise, not the model) - " + ("not a finding: the profile is flat." if not fr["identifiable"] else
+                                              "the profile is not flat."), ""]
+        if r.get("diagnose"):
+            d = r["diagnose"]
+            rows = [c for c in d["causes"] if c["name"] in ("ggx_lobe", "reference_brdf", "fresnel")]
+            L += [f"**glossrig diagnose** verdict: `{d['verdict']}` (base held-out error {d['base_error']:.4g}). "
+                  "Material and reference causes: " + "; ".join(
+                      f"{c['name']} gain {100 * c['gain']:+.1f} % (significant {c['significant']}"
+                      f"{'' if c.get('identifiable', True) else ', unidentifiable'})" for c in rows) + ".", ""]
+        L += [f"![{m}](rgl_study/{m}.png)", ""]
+    return "\n".join(L) + "\n"
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", required=True)
+    ap.add_argument("--camera", default=None, help="reuse this camera calibration (same rig and scale)")
+    ap.add_argument("--lamps", default=None, help="reuse this lamp calibration (same rig and scale)")
+    ap.add_argument("--scale", type=float, default=0.25)
+    ap.add_argument("--rotations", default="0,90")
+    ap.add_argument("--materials", default=",".join(MATERIALS))
+    ap.add_argument("--no-diagnose", dest="diagnose", action="store_false")
+    ap.add_argument("--captures-only", action="store_true")
+    ap.add_argument("--fit-rows", type=int, default=40_000, help="rows (random) the lobe fits use")
+    ap.add_argument("--report", default=str(ROOT / "validation/diagnose/rgl_study.md"))
+    a = ap.parse_args(argv)
+    work = Path(a.work)
+    work.mkdir(parents=True, exist_ok=True)
+    runs = captures(work, a)
+    if a.captures_only:
+        return
+    results = {}
+    for m, r in runs.items():
+        f = work / f"{m}.study.json"
+        if "failed" in r:
+            results[m] = {"material": m, "failed": r["failed"]}
+            continue
+        if not f.exists():
+            f.write_text(json.dumps(analyse(m, r, work, a), indent=1))
+        results[m] = json.loads(f.read_text())
+        results[m]["diagnose"] = diagnose_summary(r)
+    results["_paper_albedo"] = {str(t): paper_albedo(t) for t in (0, 45)}
+    (work / "study.json").write_text(json.dumps(results, indent=1))
+    plots(results, work, Path(a.report).parent / "rgl_study")
+    Path(a.report).write_text(markdown(results, a))
+    print(f"report written to {a.report}")
+
+
+if __name__ == "__main__":
+    main()
