@@ -1,6 +1,8 @@
 """Ground-truth recovery of every Table 9.1 material on the twin (issue 4).
 
     python validation/recovery_study.py --work /tmp/recovery [--scale 0.25]
+    python validation/recovery_study.py --work /tmp/recovery --report-only \
+        [--scale-runs /tmp/recovery_s025r0,/tmp/recovery_s05]
 
 simulate (middle-row LEDs, rotations -45, 0, 45, 90, one repeat) -> calibrate camera
 and lamps -> extract against a lambert:0.8 reference -> fit, for every material of
@@ -8,6 +10,22 @@ and lamps -> extract against a lambert:0.8 reference -> fit, for every material 
 relative errors of rho_d, rho_s, alpha_x, alpha_y and the absolute error of the lobe
 rotation (luminance fit), against the targets 3 % / 10 % / 10 % / 10 % / 3 degrees.
 Re-running resumes: finished captures, extractions and fits are reused.
+
+The truth is compared in the fit's canonical form (:func:`glossrig.core.fit.canonical`:
+``alpha_x >= alpha_y``, rotation in [0, pi)): ``(ax, ay, rot)`` and ``(ay, ax, rot +
+pi/2)`` are the same lobe, and Table 9.1 writes some materials the other way round.
+
+Which lobe parameters the data can determine is decided from the data and the fit
+alone (never from the material's name or its truth): the lobe is *resolvable* when
+its largest share of the fitted BRDF over the measured samples (the lobe contrast)
+exceeds the fit's median absolute relative residual, i.e. when at its strongest the
+lobe stands above the per-sample accuracy of the measurement; the lobe rotation
+additionally needs its standard error below the 3 degree target. Unresolvable
+parameters are shown in parentheses and not held to the targets.
+
+The report's sections on the misses read ``WORK/footprint.json`` and, for the scale
+comparison, each ``--scale-runs`` folder's report.json and footprint.json (written by
+validation/recovery_footprint.py, which says how they are measured).
 """
 from __future__ import annotations
 
@@ -21,6 +39,9 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parent.parent / "shared"
+TARGETS = {"rho_d": 0.03, "rho_s": 0.10, "alpha_x": 0.10, "alpha_y": 0.10, "lobe_rotation_deg": 3.0}
+LOBE = ("rho_s", "alpha_x", "alpha_y", "lobe_rotation_deg")
+FOOTPRINT_CMD = "python validation/recovery_footprint.py --work {work} --materials {materials} --render {render}"
 
 
 def materials() -> list[str]:
@@ -28,27 +49,335 @@ def materials() -> list[str]:
     return [r[0] for r in rows[1:]]
 
 
-def rotation_error(fit: float, truth: float, ax_fit, ay_fit, ax_t, ay_t) -> float:
-    """Lobe rotation error in degrees, modulo the lobe's symmetry (pi; pi/2 with swapped axes)."""
-    d = (fit - truth) % math.pi
-    d = min(d, math.pi - d)
-    return math.degrees(d)
+def errors(fit: dict, truth: dict) -> dict:
+    """Relative errors of rho_d, rho_s, alpha_x, alpha_y (fitted / true - 1) and the lobe
+    rotation's absolute error in degrees (modulo pi), against the truth in the fit's
+    canonical form."""
+    from glossrig.core.fit import canonical
+    from glossrig.core.ward import WardParams
+
+    t, _ = canonical(WardParams(**{k: truth[k] for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")}))
+    out = {k: fit[k] / getattr(t, k) - 1 for k in ("rho_d", "rho_s", "alpha_x", "alpha_y")}
+    d = (fit["lobe_rotation"] - t.lobe_rotation) % math.pi
+    out["lobe_rotation_deg"] = math.degrees(min(d, math.pi - d))
+    return out
 
 
-def table(report: dict) -> str:
-    lines = ["| material | rho_d | rho_s | alpha_x | alpha_y | lobe rot. (deg) | BRDF median abs. rel. err. | met |",
-             "|---|---|---|---|---|---|---|---|"]
-    for m, e in report["materials"].items():
+def lobe_contrast(samples, fit: dict) -> float:
+    """Largest share of the fitted lobe in the fitted BRDF over the measured samples:
+    max_i (f_i - rho_d / pi) / f_i (eq. 4.79 at the samples' angles)."""
+    from glossrig.core.ward import WardParams, ward_from_angles
+
+    p = WardParams(**{k: fit[k] for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")})
+    f = ward_from_angles(samples["theta_in"], samples["theta_out"], samples["theta_h"], samples["phi_h"], p)
+    ok = f > 0
+    return float(np.max((f[ok] - p.rho_d / np.pi) / f[ok]))
+
+
+def resolvable(fit: dict, contrast: float) -> dict:
+    """Which parameters the data determine (module docstring): rho_d always; the lobe's
+    parameters when its contrast exceeds the median absolute relative residual; the
+    rotation also needs a standard error below the target."""
+    lobe = contrast > fit["residuals"]["median_abs_relative"]
+    se = fit.get("lobe_rotation_stderr")
+    rot_se_deg = math.degrees(se) if se is not None else math.inf
+    out = {"rho_d": True, "rho_s": lobe, "alpha_x": lobe, "alpha_y": lobe,
+           "lobe_rotation_deg": lobe and rot_se_deg < TARGETS["lobe_rotation_deg"]}
+    return out
+
+
+def judge(err: dict, ok: dict) -> bool:
+    return all(abs(err[k]) < TARGETS[k] for k in TARGETS if ok[k])
+
+
+def evaluate(work: Path, rep: dict) -> dict:
+    """Per finished material: errors, lobe contrast, resolvability and the verdict."""
+    import pandas as pd
+
+    out = {}
+    for m, e in rep["materials"].items():
         if "fit" not in e:
             continue
-        f, t = e["fit"], e["truth"]
-        rel = {k: f[k] / t[k] - 1 for k in ("rho_d", "rho_s", "alpha_x", "alpha_y")}
-        rot = rotation_error(f["lobe_rotation"], t["lobe_rotation"], f["alpha_x"], f["alpha_y"], t["alpha_x"], t["alpha_y"])
-        met = abs(rel["rho_d"]) < 0.03 and all(abs(rel[k]) < 0.10 for k in ("rho_s", "alpha_x", "alpha_y")) and rot < 3
-        lines.append(f"| {m} | {100 * rel['rho_d']:+.1f} % | {100 * rel['rho_s']:+.1f} % | {100 * rel['alpha_x']:+.1f} % | "
-                     f"{100 * rel['alpha_y']:+.1f} % | {rot:.2f} | {100 * e['median_abs_rel_err']:.1f} % | "
-                     f"{'yes' if met else 'NO'} |")
+        df = pd.read_parquet(work / f"{m}.parquet", columns=["theta_in", "theta_out", "theta_h", "phi_h"])
+        c = lobe_contrast(df, e["fit"])
+        err = errors(e["fit"], e["truth"])
+        ok = resolvable(e["fit"], c)
+        out[m] = {"err": err, "contrast": c, "resolvable": ok, "met": judge(err, ok),
+                  "brdf_err": e["median_abs_rel_err"], "residual": e["fit"]["residuals"]["median_abs_relative"]}
+    return out
+
+
+def _pct(v: float, ok: bool = True) -> str:
+    s = f"{100 * v:+.1f} %"
+    return s if ok else f"({s})"
+
+
+def table(ev: dict, causes: dict) -> str:
+    lines = ["| material | rho_d | rho_s | alpha_x | alpha_y | lobe rot. (deg) | lobe contrast / residual | "
+             "BRDF median abs. rel. err. | met |", "|---|---|---|---|---|---|---|---|---|"]
+    for m, r in ev.items():
+        e, ok = r["err"], r["resolvable"]
+        rot = f"{e['lobe_rotation_deg']:.2f}"
+        verdict = "yes" if r["met"] else "NO"
+        if not ok["rho_s"]:
+            verdict += " on rho_d; no resolvable lobe (below)"
+        elif not all(ok.values()):
+            verdict += " (" + ", ".join(k.replace("_deg", "").replace("lobe_", "") for k in LOBE if not ok[k])
+            verdict += " not resolvable)"
+        if m in causes and not r["met"]:
+            verdict += f": {causes[m]}"
+        lines.append(f"| {m} | {_pct(e['rho_d'])} | {_pct(e['rho_s'], ok['rho_s'])} | {_pct(e['alpha_x'], ok['alpha_x'])} | "
+                     f"{_pct(e['alpha_y'], ok['alpha_y'])} | {rot if ok['lobe_rotation_deg'] else '(' + rot + ')'} | "
+                     f"{r['contrast'] / r['residual']:.3g} | {100 * r['brdf_err']:.1f} % | {verdict} |")
     return "\n".join(lines)
+
+
+def _params(d: dict) -> str:
+    return (f"rho_d {d['rho_d']:.4g}, rho_s {d['rho_s']:.4g}, alpha_x {d['alpha_x']:.4g}, "
+            f"alpha_y {d['alpha_y']:.4g}, rotation {d['lobe_rotation']:.4g} rad")
+
+
+def _se(fit: dict, k: str) -> str:
+    se = fit.get(f"{k}_stderr")
+    if se is None:
+        return "inf"
+    if k == "lobe_rotation":
+        return f"{math.degrees(se):.1f} deg"
+    return f"{se:.2g} ({100 * se / abs(fit[k]):.0f} %)"
+
+
+def section_canonical(rep: dict, ev: dict) -> list[str]:
+    from glossrig.core.fit import canonical
+    from glossrig.core.ward import WardParams
+
+    swapped = [m for m, e in rep["materials"].items() if m in ev and e["truth"]["alpha_x"] < e["truth"]["alpha_y"]]
+    lines = ["## Truths written with alpha_x < alpha_y", "",
+             "Table 9.1 writes " + ", ".join(swapped) + " with alpha_x < alpha_y; the fit reports every lobe in "
+             "its canonical form (alpha_x >= alpha_y, rotation in [0, pi); `glossrig.core.fit.canonical`, tested in "
+             "tests/test_fit.py and tests/test_fit_recovery.py), which describes the same BRDF (eq. 4.79: "
+             "(ax, ay, rot) = (ay, ax, rot + pi/2)). The study compares against `canonical(truth)`; against the truth "
+             "as written the same fits score as shown last:", ""]
+    for m in swapped:
+        t, f = rep["materials"][m]["truth"], rep["materials"][m]["fit"]
+        c, _ = canonical(WardParams(**{k: t[k] for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")}))
+        d = (f["lobe_rotation"] - t["lobe_rotation"]) % math.pi
+        raw = (f"alpha_x {_pct(f['alpha_x'] / t['alpha_x'] - 1)}, alpha_y {_pct(f['alpha_y'] / t['alpha_y'] - 1)}, "
+               f"rotation {math.degrees(min(d, math.pi - d)):.1f} deg")
+        lines.append(f"- {m}: truth as written {_params(t)}; canonical {_params(c.as_dict())}; "
+                     f"fitted {_params(f)}; against the truth as written: {raw}.")
+    return lines + [""]
+
+
+def section_no_lobe(work: Path, rep: dict, ev: dict) -> list[str]:
+    import pandas as pd
+
+    from glossrig.core.ward import WardParams, ward_from_angles
+
+    flat = [m for m, r in ev.items() if not r["resolvable"]["rho_s"]]
+    if not flat:
+        return []
+    others = [r["contrast"] / r["residual"] for m, r in ev.items() if m not in flat]
+    lines = ["## Materials without a measurable specular lobe", "",
+             "Criterion (stated in the module docstring, data-driven): the lobe is resolvable when its largest share "
+             "of the fitted BRDF over the measured samples (lobe contrast) exceeds the fit's median absolute relative "
+             f"residual. Every other material has contrast / residual between {min(others):.0f} and {max(others):.0f}.",
+             ""]
+    for m in flat:
+        e, r = rep["materials"][m], ev[m]
+        f, t = e["fit"], e["truth"]
+        df = pd.read_parquet(work / f"{m}.parquet", columns=["theta_in", "theta_out", "theta_h", "phi_h"])
+        tp = WardParams(**{k: t[k] for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")})
+        ft = ward_from_angles(df["theta_in"], df["theta_out"], df["theta_h"], df["phi_h"], tp)
+        true_contrast = float(np.max((ft - tp.rho_d / np.pi) / ft))
+        res = f["residuals"]
+        lines += [f"**{m}** (truth {_params(t)}; fitted {_params(f)}):", "",
+                  f"- the fitted lobe's largest share of the BRDF over the {f['n_samples']} samples is "
+                  f"{100 * r['contrast']:.3f} % (the true lobe's: {100 * true_contrast:.4f} %), against a median "
+                  f"absolute relative residual of {100 * r['residual']:.2f} % (and a BRDF median error against the "
+                  f"truth of {100 * r['brdf_err']:.2f} %): contrast / residual = {r['contrast'] / r['residual']:.2f};",
+                  f"- the fitted Ward model explains {100 * res['r_squared_weighted']:.3f} % of the weighted variance "
+                  "about a constant (Lambertian) BRDF (weighted R^2);",
+                  f"- standard errors the fit reports (sandwich, from the Jacobian): rho_s {_se(f, 'rho_s')}, "
+                  f"alpha_x {_se(f, 'alpha_x')}, alpha_y {_se(f, 'alpha_y')}, rotation {_se(f, 'lobe_rotation')}. "
+                  "They do not dwarf the estimates: they count only the per-sample noise over a million samples, not "
+                  "the extraction's systematic error, which the lobe absorbs (the fitted rho_s is "
+                  f"{(f['rho_s'] - t['rho_s']) / f['rho_s_stderr']:.1f} standard errors from the truth). Hence the "
+                  "contrast criterion rather than a standard-error threshold;",
+                  f"- rho_d, which the data do determine, is recovered to {100 * r['err']['rho_d']:+.2f} %.", ""]
+    return lines
+
+
+def _fp_row(fp: dict, fit_err: dict | None) -> str:
+    e = fp.get("footprint_only_rel_err", {})
+    fo = (f"{_pct(e['rho_s'])}, {_pct(e['alpha_x'])}, {_pct(e['alpha_y'])}, {e['lobe_rotation_deg']:.2f} deg"
+          if e else "-")
+    fe = (f"{_pct(fit_err['rho_s'])}, {_pct(fit_err['alpha_x'])}, {_pct(fit_err['alpha_y'])}, "
+          f"{fit_err['lobe_rotation_deg']:.2f} deg" if fit_err else "-")
+    s = fp["n_inside_half_max_per_slice"]
+    observed = "-" if fp.get("predicted_from_scale") else f"{fp['peak']['observed']:.3g}"
+    return (f"| {fp['material']} | {fp['scale']} | {min(fp['lobe_fwhm_deg'].values()):.2f} / {max(fp['lobe_fwhm_deg'].values()):.2f} | "
+            f"{fp['pixel_deg']:.3f} | {fp['block_span_deg']['median']:.2f} | {fp['kernel_rms_deg']:.2f} | "
+            f"{fp['n_inside_half_max']} ({s['median']:.0f}; {s['empty']} of {s['slices']} empty) | "
+            f"{fp['peak']['point']:.3g} / {fp['peak']['footprint']:.3g} / {observed} | {fo} | {fe} |")
+
+
+FP_HEADER = ["| material | scale | lobe FWHM, minor / major axis (deg) | theta_h per pixel (deg) | "
+             "theta_h across a Bayer block (deg) | kernel RMS (deg) | samples inside half max. (median per LED "
+             "and rotation) | peak BRDF: point / footprint-averaged truth / extracted (1/sr) | footprint-only fit: "
+             "rho_s, alpha_x, alpha_y, rotation | pipeline fit: the same |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+
+
+def section_footprint(work: Path, rep: dict, ev: dict, runs: list[Path]) -> list[str]:
+    path = work / "footprint.json"
+    if not path.exists():
+        return ["## Narrow lobes", "", f"(no {path}: run validation/recovery_footprint.py)", ""]
+    fps = json.loads(path.read_text())
+    lines = ["## Lobes about as narrow as one sample's footprint", "",
+             "Every sample is one 2x2 Bayer block whose R, G, B are read at the block centre by bilinear "
+             "interpolation of the CFA planes (core/extract.py `block_values`), and every pixel integrates its "
+             "area; the twin renders that way (so does a camera). A sample therefore carries the BRDF averaged over "
+             "a kernel a few pixels wide, which the cylinder maps onto a range of half vectors: theta_h changes "
+             "fastest along the circumference (the normal turns by one pixel's arc), slowly along the axis. "
+             "validation/recovery_footprint.py measures that range from the extracted angles of neighbouring blocks "
+             "(the calibrated geometry), builds the luminance kernel of `block_values` (RMS width "
+             f"{next(iter(fps.values()))['kernel_rms_px']:.2f} px here), averages the true Ward BRDF over every "
+             "sample's footprint, and fits eq. 4.79 to that noise-free footprint-averaged truth (the "
+             "'footprint-only fit': the bias the footprint alone causes). FWHM: full width at half maximum of the "
+             "lobe in theta_h, 2 alpha sqrt(ln 2).", "",
+             f"Command: `{FOOTPRINT_CMD.format(work=work, materials=','.join(fps), render=next(iter(fps.values()))['render'])}` "
+             "(render `old`: these captures were rendered before twin/render.py integrated the pixel area, with one "
+             "bilinear read per pixel from a canvas at the output resolution, a further 1-px tent in the kernel).", "",
+             *FP_HEADER]
+    for m, fp in fps.items():
+        fit_err = ev[m]["err"] if m in ev else None
+        lines.append(_fp_row(fp, fit_err))
+    lines += ["", "Signed error of the extracted BRDF against the point-sampled truth where the true lobe is more than "
+              "half the true BRDF (medians by theta_h), observed and predicted by the footprint average alone:", ""]
+    for m, fp in fps.items():
+        tr = "; ".join(f"{t['theta_h_deg'][0]:.2f}-{t['theta_h_deg'][1]:.2f} deg: {_pct(t['observed'])} / {_pct(t['predicted'])}"
+                       for t in fp["trend_vs_theta_h"])
+        lines.append(f"- {m} (observed / predicted): {tr}.")
+    lines += ["", "What the numbers say, per material:", ""]
+    for m, fp in fps.items():
+        fw = fp["lobe_fwhm_deg"]
+        minor = min(fw.values())
+        sl = fp["n_inside_half_max_per_slice"]
+        fo = fp.get("footprint_only_rel_err")
+        txt = (f"- {m}: the lobe's half-maximum width along its narrow axis, {minor:.2f} deg, is "
+               f"{minor / fp['block_span_deg']['median']:.2f} times the theta_h range of one Bayer block "
+               f"({fp['block_span_deg']['median']:.2f} deg) and {minor / fp['kernel_rms_deg']:.1f} times the kernel's RMS "
+               f"width ({fp['kernel_rms_deg']:.2f} deg); {fp['n_inside_half_max']} of the samples lie inside the half "
+               f"maximum (median {sl['median']:.0f} per LED and rotation, {sl['empty']} of {sl['slices']} LED-rotation "
+               f"slices with none)"
+               + (" - the lobe is narrower than the range one sample spans, so at this scale the rig cannot resolve "
+                  "it" if minor < fp["block_span_deg"]["median"] else "")
+               + ". Averaged over the footprint, the truth peaks at "
+               f"{100 * fp['peak']['footprint'] / fp['peak']['point']:.0f} % of its point value; the extracted data "
+               f"peak at {100 * fp['peak']['observed'] / fp['peak']['point']:.0f} %.")
+        if fo and m in ev:
+            e = ev[m]["err"]
+            txt += (f" Fitting eq. 4.79 to the noise-free footprint-averaged truth gives rho_s {_pct(fo['rho_s'])}, "
+                    f"alpha_x {_pct(fo['alpha_x'])}, alpha_y {_pct(fo['alpha_y'])}, rotation "
+                    f"{fo['lobe_rotation_deg']:.2f} deg; the pipeline's fit of the rendered, noisy captures: "
+                    f"{_pct(e['rho_s'])}, {_pct(e['alpha_x'])}, {_pct(e['alpha_y'])}, {e['lobe_rotation_deg']:.2f} deg "
+                    f"({'meets' if ev[m]['met'] else 'misses'} the targets).")
+        lines.append(txt)
+    lines += ["", "The kernel's variance along a pixel axis is 0.75 px^2 from `block_values`' bilinear read of each "
+              "CFA plane at the block centre (weights 3/4 and 1/4 at 0.5 and 1.5 px), 1/12 px^2 from the pixel's area "
+              "and, for the captures rendered with the old lens resampling, 1/6 px^2 more "
+              "(tests/test_fit_recovery.py checks it): the extraction's interpolation, not the pixel, dominates the "
+              "footprint.", ""]
+    preds = sorted(work.glob("footprint_at_*.json"), key=lambda q: float(q.stem.split("_at_")[1]))
+    if preds:
+        lines += ["### Predicted at finer scales", "",
+                  "The same samples with the measured Jacobian scaled by the ratio of the scales (the footprint "
+                  "shrinks with the pixel) and the pixel-area kernel of a real camera (no old-render tent); the "
+                  "growth in the number of samples is not modelled (the count column is the 0.25-scale one). "
+                  "Commands: " + "; ".join(f"`{FOOTPRINT_CMD.format(work=work, materials=','.join(json.loads(q.read_text())), render='area')} "
+                                          f"--at-scale {q.stem.split('_at_')[1]}`" for q in preds) + ".", "",
+                  *FP_HEADER]
+        for q in preds:
+            for m, fp in json.loads(q.read_text()).items():
+                lines.append(_fp_row(fp, None))
+        lines.append("")
+    span = float(np.median([fp["block_span_deg"]["median"] for fp in fps.values()]))
+    rest = sorted((min(rep["materials"][m]["fit"]["alpha_x"], rep["materials"][m]["fit"]["alpha_y"]), m)
+                  for m, r in ev.items() if m not in fps and r["resolvable"]["alpha_y"])
+    if rest:
+        a, m = rest[0]
+        fwhm = math.degrees(2 * a * math.sqrt(math.log(2)))
+        n_met = sum(ev[k]["met"] for _, k in rest)
+        lines += [f"Every other resolvable lobe is wider: the narrowest, {m} (fitted minor alpha {a:.4g}), has a "
+                  f"half-maximum width of {fwhm:.2f} deg, {fwhm / span:.1f} times the {span:.2f} deg a Bayer block "
+                  f"spans; {n_met} of these {len(rest)} materials meet the targets.", ""]
+    lines += section_scale(runs)
+    lines += ["### What would remove it (not done here)", "",
+              "Finer pixels (the predictions and the scale-0.5 run above; the real rig captures at full resolution); "
+              "a fit of the footprint-averaged model (eq. 4.79 averaged over each sample's kernel mapped by its "
+              "Jacobian, which `recovery_footprint.footprint_average` evaluates; it would remove the footprint-only "
+              "fit's bias at the cost of one model evaluation per kernel point near the peak); or an extraction "
+              "that does not interpolate the CFA planes for narrow lobes. On the real rig the LED's finite emitting "
+              "area (a point light in the twin) widens the measured lobe further.", ""]
+    return lines
+
+
+def section_scale(runs: list[Path]) -> list[str]:
+    rows = []
+    for run in runs:
+        rp, fpp = run / "report.json", run / "footprint.json"
+        if not rp.exists():
+            continue
+        rep = json.loads(rp.read_text())
+        fps = json.loads(fpp.read_text()) if fpp.exists() else {}
+        for m, e in rep.get("materials", {}).items():
+            if "fit" not in e:
+                continue
+            err = errors(e["fit"], e["truth"])
+            rows.append((run, rep, m, e, err, fps.get(m)))
+    if not rows:
+        return []
+    lines = ["### The footprint shrinks with the pixel: scale 0.25 against 0.5", "",
+             "Same material, rotation 0 only, middle-row LEDs, the twin's current renderer (pixel-area "
+             "integration, twin/render.py `LensMap.apply`), each scale with its own calibration"
+             + "".join(f" ({r.name} reuses the camera, lamp and reference captures of {(r / 'camera.json').resolve().parent})"
+                       for r, *_ in rows if (r / "camera.json").is_symlink()) + ": "
+             + "; ".join(f"`python validation/pipeline_study.py --out {r} --scale {rep['scale']} --materials {m} "
+                         f"--rotations {rep['rotations']} --fit` then `{FOOTPRINT_CMD.format(work=r, materials=m, render='area')}`"
+                         for r, rep, m, *_ in rows) + ".", "",
+             "| run | scale | rho_d | rho_s | alpha_x | alpha_y | lobe rot. (deg) | BRDF median abs. rel. err. | "
+             "theta_h across a Bayer block (deg) | samples inside half max. |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for run, rep, m, e, err, fp in rows:
+        span = f"{fp['block_span_deg']['median']:.2f}" if fp else "-"
+        n_in = str(fp["n_inside_half_max"]) if fp else "-"
+        lines.append(f"| {run.name} ({m}) | {rep['scale']} | {_pct(err['rho_d'])} | {_pct(err['rho_s'])} | "
+                     f"{_pct(err['alpha_x'])} | {_pct(err['alpha_y'])} | {err['lobe_rotation_deg']:.2f} | "
+                     f"{100 * e['median_abs_rel_err']:.1f} % | {span} | {n_in} |")
+    if len(rows) >= 2:
+        (_, r0, _, e0, x0, f0), (_, r1, _, e1, x1, f1) = sorted(rows, key=lambda r: r[1]["scale"])[:2]
+        span = (f" (theta_h across a Bayer block {f0['block_span_deg']['median']:.2f} -> "
+                f"{f1['block_span_deg']['median']:.2f} deg)" if f0 and f1 else "")
+        lines += ["", f"From scale {r0['scale']} to {r1['scale']}{span} the errors shrink: "
+                  + ", ".join(f"{k.replace('_deg', '')} {abs(x0[k]) if k.endswith('deg') else 100 * abs(x0[k]):.1f} -> "
+                              f"{abs(x1[k]) if k.endswith('deg') else 100 * abs(x1[k]):.1f}"
+                              f"{' deg' if k.endswith('deg') else ' %'}" for k in LOBE)
+                  + f", BRDF median error {100 * e0['median_abs_rel_err']:.1f} -> {100 * e1['median_abs_rel_err']:.1f} %. "
+                  f"The alpha_x error falls by {abs(x0['alpha_x'] / x1['alpha_x']):.1f}x for a footprint "
+                  f"{r1['scale'] / r0['scale']:.0f}x smaller: a blur adds its variance to the lobe's, so the bias goes "
+                  "with the footprint squared. With one sample rotation the footprint widens the lobe along one "
+                  "direction (the circumference) only, which the fit reads as a wider, turned lobe (this one is "
+                  "nearly isotropic, alpha_x / alpha_y = 1.13); the footprint-only fit on each run's own samples "
+                  "(table below) reproduces the pipeline's errors, rotation included, so they are the footprint's. "
+                  "The study's four sample rotations constrain the orientation better (main table) but leave the "
+                  "peak's attenuation."]
+    fps = [fp for *_, fp in rows if fp]
+    if fps:
+        lines += ["", *FP_HEADER]
+        for (run, rep, m, e, err, fp) in rows:
+            if fp:
+                lines.append(_fp_row(fp, err))
+    return lines + [""]
 
 
 def main() -> None:
@@ -59,24 +388,45 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=0.25)
     ap.add_argument("--materials", default=",".join(materials()))
     ap.add_argument("--out", default=str(HERE / "recovery.md"))
+    ap.add_argument("--scale-runs", default="", help="comma-separated pipeline_study folders for the scale comparison")
     ap.add_argument("--report-only", action="store_true",
-                    help="only write the table from WORK/report.json (e.g. of an interrupted run)")
+                    help="only write the report from WORK/report.json (e.g. of an interrupted run)")
     a = ap.parse_args()
+    work = Path(a.work)
     if a.report_only:
-        rep = json.loads((Path(a.work) / "report.json").read_text())
+        rep = json.loads((work / "report.json").read_text())
     else:
         rep = pipeline_study.main(["--out", a.work, "--scale", str(a.scale), "--materials", a.materials,
                                    "--rotations=-45,0,45,90", "--fit"])
-    done = sum("fit" in e for e in rep["materials"].values())
+    runs = [Path(r) for r in a.scale_runs.split(",") if r]
+    ev = evaluate(work, rep)
+    fps = json.loads((work / "footprint.json").read_text()) if (work / "footprint.json").exists() else {}
+    causes = {m: "lobe about as narrow as the sample footprint (below)" for m in fps}
+    done = len(ev)
+    met = sum(r["met"] for r in ev.values())
     text = ["# Ground-truth recovery on the twin (issue 4)", "",
-            f"Command: `python validation/recovery_study.py --work {a.work} --scale {a.scale}` "
-            "(middle-row LEDs, rotations -45/0/45/90, one repeat, thesis LED fluctuations and sensor noise, "
-            "reference lambert:0.8). Luminance fit; errors are fitted/true - 1, lobe rotation modulo pi.", "",
+            f"Commands: `python validation/recovery_study.py --work {a.work} --scale {rep['scale']}` (the study; "
+            f"resumable), then `python validation/recovery_study.py --work {a.work} --report-only"
+            + (f" --scale-runs {a.scale_runs}" if a.scale_runs else "") + "` (this report; the sections below name "
+            "the commands that produce their inputs). Middle-row LEDs, rotations -45/0/45/90, one repeat, thesis LED "
+            "fluctuations and sensor noise, reference lambert:0.8. Luminance fit; errors are fitted / true - 1 "
+            "against the truth in the fit's canonical form (alpha_x >= alpha_y, rotation in [0, pi)), lobe rotation "
+            "modulo pi. Targets: rho_d 3 %, rho_s and both alphas 10 %, rotation 3 deg, for parameters the data "
+            "resolve.", "",
             f"Calibration: intrinsics {json.dumps({k: round(v, 5) if isinstance(v, float) else v for k, v in rep['intrinsics'].items()})}; "
             f"lamp errors (mm) {json.dumps({k: round(v, 2) for k, v in rep['lamp_error_mm'].items()})}.", "",
-            f"Materials finished: {done} of {len(materials())} in ward_params.csv "
-            "(re-running the command resumes an interrupted study).", "",
-            table(rep), ""]
+            f"Materials finished: {done} of {len(materials())} in ward_params.csv; targets met on every resolvable "
+            f"parameter: {met} of {done}"
+            + (f" ({', '.join(m for m, r in ev.items() if not r['resolvable']['rho_s'])}: rho_d only, no resolvable lobe)"
+               if any(not r["resolvable"]["rho_s"] for r in ev.values()) else "")
+            + (f"; missed: {', '.join(m for m, r in ev.items() if not r['met'])}, each explained below by a measured "
+               "cause" if met < done else "") + ".", "",
+            table(ev, causes), "",
+            "Parentheses: a parameter the data do not resolve (criterion below), not held to the target. Lobe "
+            "contrast / residual: the fitted lobe's largest share of the fitted BRDF over the samples divided by the "
+            "fit's median absolute relative residual; the lobe is resolvable when it exceeds 1. The rotation also "
+            "needs its standard error below 3 deg.", "",
+            *section_canonical(rep, ev), *section_no_lobe(work, rep, ev), *section_footprint(work, rep, ev, runs)]
     Path(a.out).write_text("\n".join(text))
     print("\n".join(text))
 

@@ -1,0 +1,273 @@
+"""Why narrow lobes miss the recovery targets: the angular footprint of one sample (issue 4).
+
+    python validation/recovery_footprint.py --work /tmp/recovery \
+        --materials transparency_sheet,brushed_reproduced,brushed_original [--render old]
+
+Each BRDF sample of ``glossrig extract`` is one 2x2 Bayer block: its R, G, B values are
+read at the block centre by bilinear interpolation from the four CFA planes
+(:func:`glossrig.core.extract.block_values`), and each CFA pixel integrates the image
+over its area. The value a sample carries is therefore the BRDF averaged over a kernel
+of pixel offsets ``p`` (a few pixels wide), mapped into the lobe's domain by the local
+Jacobian ``J = d(slope)/d(pixel)`` of the half vector's slope ``tan(theta_h) (cos phi_h,
+sin phi_h)`` (the variable of Ward's exponent, eq. 4.79). A fit of the point-sampled
+model (eq. 4.79) to such values is biased once the lobe (full width at half maximum
+``2 alpha sqrt(ln 2)`` in slope) is not much wider than ``|J| p``.
+
+Measured here, for each material's truth (the twin's truth.json) and the samples it
+was extracted at (``WORK/<material>.parquet``), with ``J`` taken from the extracted
+angles of neighbouring blocks (so from the calibrated geometry, not the nominal one):
+
+* the footprint: the range of theta_h across one Bayer block (2 px along the direction
+  of fastest change) and the RMS width of the whole luminance kernel, in degrees, next
+  to the lobe's half-maximum width;
+* how many samples fall inside the lobe's half maximum (per LED and rotation);
+* the forward model: the true BRDF averaged over every sample's footprint, against the
+  point value (``predicted``) and against what the pipeline extracted (``observed``);
+* the parameters a fit of eq. 4.79 recovers from the footprint-averaged truth without
+  any noise (``footprint-only fit``): the bias the footprint alone causes.
+
+``--render old`` adds the twin's earlier lens resampling (one bilinear read per output
+pixel from a canvas at the output resolution: on average a further 1-pixel tent) to
+the kernel, for captures rendered before twin/render.py integrated the pixel area.
+``--at-scale S`` predicts the same for captures at scale S (the measured Jacobian
+scaled by the ratio of the scales, at the same samples).
+Writes ``WORK/footprint.json`` (``WORK/footprint_at_S.json``), read by
+recovery_study.py's report.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+LN2 = math.log(2.0)
+
+
+def _box(step: float = 0.25) -> dict:
+    """1-D pixel-area (box) kernel on a grid of ``step`` px: midpoint rule."""
+    n = int(round(1 / step))
+    return {round((i + 0.5) * step - 0.5, 6): 1.0 / n for i in range(n)}
+
+
+def _conv(a: dict, b: dict) -> dict:
+    out: dict = {}
+    for x, w in a.items():
+        for y, v in b.items():
+            k = round(x + y, 6)
+            out[k] = out.get(k, 0.0) + w * v
+    return out
+
+
+def luminance_kernel(cfa="RGGB", render: str = "area") -> tuple[np.ndarray, np.ndarray]:
+    """Pixel offsets ``(m, 2)`` (column, row) from the block centre and weights ``(m,)``
+    of the luminance value of one sample.
+
+    Per CFA plane (di, dj), :func:`glossrig.core.extract.block_values` reads the plane
+    bilinearly at the block centre, which is (0.5 - di, 0.5 - dj) px from the plane's
+    pixel (di, dj) of the block: along rows, weight 3/4 at -0.5 px and 1/4 at +1.5 px
+    for di = 0, 1/4 at -1.5 and 3/4 at +0.5 for di = 1 (columns alike). G is the mean
+    of its two planes, luminance is Rec. 709 Y of R, G, B. Each pixel integrates its
+    area (box); ``render="old"`` adds a 1-px tent (bilinear read of a canvas at the
+    output resolution, averaged over the sub-pixel phase)."""
+    from glossrig.core.demosaic import cfa_array
+    from glossrig.core.samples import LUMINANCE_WEIGHTS
+
+    cid = cfa_array(cfa)
+    n_planes = np.bincount(cid.ravel(), minlength=3)
+    lattice = {0: {-0.5: 0.75, 1.5: 0.25}, 1: {-1.5: 0.25, 0.5: 0.75}}
+    pix = _box()
+    if render == "old":
+        pix = _conv(pix, _conv(_box(), _box()))
+    elif render != "area":
+        raise ValueError(f"render must be 'area' or 'old', got {render!r}")
+    acc: dict = {}
+    for di in range(2):
+        for dj in range(2):
+            c = int(cid[di, dj])
+            w_c = LUMINANCE_WEIGHTS[c] / n_planes[c]
+            rows, cols = _conv(lattice[di], pix), _conv(lattice[dj], pix)
+            for y, wy in rows.items():
+                for x, wx in cols.items():
+                    acc[(x, y)] = acc.get((x, y), 0.0) + w_c * wy * wx
+    offs = np.array(list(acc.keys()), float)
+    w = np.array(list(acc.values()))
+    return offs, w / w.sum()
+
+
+def slopes(theta_h, phi_h) -> np.ndarray:
+    t = np.tan(np.asarray(theta_h, float))
+    return np.stack([t * np.cos(phi_h), t * np.sin(phi_h)], axis=-1)
+
+
+def exponent(s: np.ndarray, p) -> np.ndarray:
+    """Ward's exponent tan^2 th_h (cos^2 a_n / ax^2 + sin^2 a_n / ay^2), a_n = phi_h + rot
+    (eq. 4.79-4.80), from the slopes ``s``: the lobe is exp(-q), half maximum at q = ln 2."""
+    c, sn = math.cos(p.lobe_rotation), math.sin(p.lobe_rotation)
+    sx, sy = c * s[:, 0] - sn * s[:, 1], sn * s[:, 0] + c * s[:, 1]
+    return (sx / p.alpha_x) ** 2 + (sy / p.alpha_y) ** 2
+
+
+def slope_jacobian(df) -> np.ndarray:
+    """``(n, 2, 2)`` d(slope)/d(u, v) per pixel, from neighbouring blocks (2 px apart) of
+    the same LED and rotation (central differences, one-sided at the border; NaN where
+    a block has no neighbour along an axis)."""
+    s = slopes(df["theta_h"].to_numpy(), df["phi_h"].to_numpy())
+    J = np.full((len(df), 2, 2), np.nan)
+    u = df["u"].to_numpy() // 2
+    v = df["v"].to_numpy() // 2
+    for _, idx in df.groupby(["led", "rotation"]).indices.items():
+        uu, vv = u[idx] - u[idx].min(), v[idx] - v[idx].min()
+        grid = np.full((vv.max() + 1, uu.max() + 1), -1, np.int64)
+        grid[vv, uu] = idx
+        for axis, (du, dv) in enumerate(((1, 0), (0, 1))):
+            def at(a, b):
+                ok = (a >= 0) & (b >= 0) & (a < grid.shape[1]) & (b < grid.shape[0])
+                out = np.full(idx.size, -1, np.int64)
+                out[ok] = grid[b[ok], a[ok]]
+                return out
+            fwd, bwd = at(uu + du, vv + dv), at(uu - du, vv - dv)
+            hi = np.where(fwd >= 0, fwd, idx)
+            lo = np.where(bwd >= 0, bwd, idx)
+            span = 2.0 * ((fwd >= 0).astype(float) + (bwd >= 0))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                J[idx, :, axis] = (s[hi] - s[lo]) / span[:, None]
+    return J
+
+
+def footprint_average(df, p, J, offs, w, q_max: float = 400.0, chunk: int = 4000) -> np.ndarray:
+    """The BRDF of ``p`` (eq. 4.79, :func:`glossrig.core.ward.ward_from_angles`) averaged
+    over each sample's kernel ``sum_k w_k f(s + J p_k)``, in- and outgoing zeniths held
+    at the sample's own. Samples whose point exponent exceeds ``q_max`` and samples
+    without a Jacobian keep the point value."""
+    from glossrig.core.ward import ward_from_angles
+
+    ti, to = df["theta_in"].to_numpy(), df["theta_out"].to_numpy()
+    th, ph = df["theta_h"].to_numpy(), df["phi_h"].to_numpy()
+    f = ward_from_angles(ti, to, th, ph, p)
+    s = slopes(th, ph)
+    q = exponent(s, p)
+    todo = np.flatnonzero((q < q_max) & np.all(np.isfinite(J.reshape(len(df), 4)), axis=1))
+    out = f.copy()
+    for a in range(0, todo.size, chunk):
+        i = todo[a:a + chunk]
+        sk = s[i, None, :] + np.einsum("nij,kj->nki", J[i], offs)          # (n, k, 2)
+        thk = np.arctan(np.hypot(sk[..., 0], sk[..., 1]))
+        phk = np.arctan2(sk[..., 1], sk[..., 0])
+        fk = ward_from_angles(ti[i, None], to[i, None], thk, phk, p)
+        out[i] = fk @ w
+    return out
+
+
+def kernel_rms_px(offs, w, direction) -> float:
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    x = offs @ d
+    m = np.sum(w * x)
+    return float(np.sqrt(np.sum(w * (x - m) ** 2)))
+
+
+def trend(theta_h_deg, pred, obs, n_bins: int = 6) -> list[dict]:
+    """Median predicted and observed relative error (value / point truth - 1) in theta_h bins."""
+    edges = np.linspace(0, max(float(theta_h_deg.max()), 1e-6), n_bins + 1)
+    out = []
+    for a, b in zip(edges, edges[1:]):
+        k = (theta_h_deg >= a) & (theta_h_deg < b)
+        if k.sum() >= 20:
+            out.append({"theta_h_deg": [float(a), float(b)], "n": int(k.sum()),
+                        "predicted": float(np.median(pred[k])), "observed": float(np.median(obs[k]))})
+    return out
+
+
+def study(work: Path, material: str, render: str, fit: bool = True, at_scale: float | None = None) -> dict:
+    """The footprint numbers of one material (module docstring). ``at_scale``: predict
+    for captures at that scale instead of the one measured, by scaling the measured
+    Jacobian by (measured scale / at_scale) at the same samples (the footprint shrinks
+    with the pixel; the number of samples, which grows, is not modelled)."""
+    from glossrig.core.fit import canonical, fit_samples
+    from glossrig.core.samples import luminance, read_samples
+    from glossrig.core.ward import WardParams, ward_from_angles
+
+    df = read_samples(work / f"{material}.parquet")
+    truth_json = json.loads((work / material / "truth.json").read_text())
+    p = WardParams(**truth_json["material"]["ward"])
+    from glossrig.core.rig import default_rig_path, load_rig
+
+    cfa = load_rig(default_rig_path()).camera.cfa            # the twin's sensor (scenes/thesis_rig.toml)
+    offs, w = luminance_kernel(cfa, render)
+    J = slope_jacobian(df)
+    scale = truth_json.get("scale")
+    if at_scale is not None:
+        J *= scale / at_scale
+
+    s = slopes(df["theta_h"].to_numpy(), df["phi_h"].to_numpy())
+    q = exponent(s, p)
+    inside = q < LN2                                   # inside the half maximum
+    near = q < 20 * LN2                                # where the lobe is above 1e-6 of its peak
+    sv = np.linalg.svd(J[near & np.all(np.isfinite(J.reshape(len(df), 4)), axis=1)], compute_uv=False)
+    Jmax = sv[:, 0]                                    # slope per px along the fastest direction
+    # kernel RMS along each sample's fastest direction ~ along u or v: take the larger of the two
+    rms_px = max(kernel_rms_px(offs, w, (1, 0)), kernel_rms_px(offs, w, (0, 1)))
+    deg = 180 / math.pi
+    per_slice = df.assign(inside=inside).groupby(["led", "rotation"])["inside"].sum()
+    f_meas = footprint_average(df, p, J, offs, w)
+    f_point = ward_from_angles(df["theta_in"], df["theta_out"], df["theta_h"], df["phi_h"], p)
+    y = np.asarray(luminance(df["r"], df["g"], df["b"]), float)
+    sel = f_point > 0.05                               # the report's selection (pipeline_study)
+    lobe = f_point - p.rho_d / np.pi > 0.5 * f_point      # the lobe is most of the BRDF
+    pred = f_meas[sel] / f_point[sel] - 1
+    obs = y[sel] / f_point[sel] - 1
+    out = {
+        "material": material, "render": render, "scale": at_scale or scale, "measured_scale": scale,
+        "predicted_from_scale": scale if at_scale is not None else None,
+        "truth": p.as_dict(),
+        "lobe_fwhm_deg": {"alpha_x": 2 * p.alpha_x * math.sqrt(LN2) * deg, "alpha_y": 2 * p.alpha_y * math.sqrt(LN2) * deg},
+        "block_span_deg": {"median": float(np.median(2 * Jmax) * deg), "p10": float(np.percentile(2 * Jmax, 10) * deg),
+                           "p90": float(np.percentile(2 * Jmax, 90) * deg)},
+        "kernel_rms_px": rms_px,
+        "kernel_rms_deg": float(np.median(Jmax) * rms_px * deg),
+        "pixel_deg": float(np.median(Jmax) * deg),
+        "n_inside_half_max": int(inside.sum()),
+        "n_inside_half_max_per_slice": {"median": float(per_slice.median()), "max": int(per_slice.max()),
+                                        "slices": int(per_slice.size), "empty": int((per_slice == 0).sum())},
+        "n_above_0.05": int(sel.sum()),
+        "peak": {"point": float(f_point.max()), "footprint": float(f_meas.max()), "observed": float(y.max())},
+        "median_abs_rel_err_observed": float(np.median(np.abs(obs))),
+        "median_abs_rel_err_predicted": float(np.median(np.abs(pred))),
+        "median_abs_observed_minus_predicted": float(np.median(np.abs(obs - pred))),
+        "trend_vs_theta_h": trend(np.degrees(df["theta_h"].to_numpy()[lobe]), f_meas[lobe] / f_point[lobe] - 1,
+                                  y[lobe] / f_point[lobe] - 1),
+    }
+    if fit:
+        # the pipeline's own fit (`glossrig fit`'s defaults: luminance, the table's weight column)
+        r = fit_samples(df.assign(r=f_meas, g=f_meas, b=f_meas), channels=["luminance"]).fits["luminance"]
+        t, _ = canonical(p)
+        out["footprint_only_fit"] = r.params.as_dict()
+        out["footprint_only_rel_err"] = {k: getattr(r.params, k) / getattr(t, k) - 1
+                                         for k in ("rho_d", "rho_s", "alpha_x", "alpha_y")}
+        d = (r.params.lobe_rotation - t.lobe_rotation) % math.pi
+        out["footprint_only_rel_err"]["lobe_rotation_deg"] = math.degrees(min(d, math.pi - d))
+    return out
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", required=True)
+    ap.add_argument("--materials", default="transparency_sheet,brushed_reproduced,brushed_original")
+    ap.add_argument("--render", choices=("area", "old"), default="old")
+    ap.add_argument("--no-fit", action="store_true")
+    ap.add_argument("--at-scale", type=float, default=None,
+                    help="predict the footprint's effect at this capture scale (Jacobian scaled, same samples)")
+    ap.add_argument("--out", default=None, help="default WORK/footprint.json")
+    a = ap.parse_args(argv)
+    work = Path(a.work)
+    res = {m: study(work, m, a.render, fit=not a.no_fit, at_scale=a.at_scale) for m in a.materials.split(",")}
+    default = work / ("footprint.json" if a.at_scale is None else f"footprint_at_{a.at_scale:g}.json")
+    Path(a.out or default).write_text(json.dumps(res, indent=1))
+    print(json.dumps(res, indent=1))
+    return res
+
+
+if __name__ == "__main__":
+    main()
