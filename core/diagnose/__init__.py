@@ -88,6 +88,6 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
             "fit": str(fit) if fit else None, "material": w.as_dict(), "material_from_capture": fit is None,
             "n_brdf_rows": int(len(m.rows)), "leds": sorted(int(x) for x in np.unique(t.led)),
             "splits": {"brdf": "leave one LED out (per-LED parameters or one LED: the two halves of the pixel rows)",
-                       "frames": "even / odd exposure index", "pixels": "leave one LED out"},
+                       "frames": "even / odd exposure index", "pixels": "even / odd exposure index (pixel set found under every LED)"},
             "time_s": time.time() - t0}
     return write_report(out, causes, base, structure, meta, plots=plots)

@@ -15,7 +15,8 @@ squared normalised residual, :func:`chi2`):
   ``DN - black = rate * t`` with one rate per pixel fitted on the training
   exposures. Folds: even / odd exposure index (interleaved in time).
 * ``pixels``: each LED's per-pixel rate against the 3x3 median of its own CFA
-  colour (a smooth image). Folds: leave one LED out.
+  colour (a smooth image). Folds: even / odd exposure index, the hot-pixel set found
+  under every LED in the training exposures.
 
 A cause is *significant* when its held-out error is lower than the base
 model's in every fold and the pooled relative gain exceeds its space's
