@@ -44,6 +44,17 @@ def test_geometric_effects_change_the_rendered_rig_and_the_truth(rig):
     np.testing.assert_allclose(v2.led_radiance(9), base.led_radiance(9), rtol=1e-4, atol=1e-7)
 
 
+def test_surface_positions_lie_on_the_sample(rig):
+    """points_mm() (the AOV render behind the LED emission pattern) gives each pixel the
+    holder-frame point it sees: on the sample band, every point lies on the cylinder."""
+    v = vrig(rig, {"sample_radius_error": 0.4})
+    p = v.points_mm()
+    band = (np.abs(p).sum(-1) > 0) & (np.abs(p[..., 1]) < rig.sample_height / 2 - 1.0)
+    assert band.mean() > 0.01
+    r = np.hypot(p[..., 0], p[..., 2])[band]
+    assert np.mean(np.abs(r - (rig.cylinder_radius + 0.4)) < 0.05) > 0.99
+
+
 def test_radiometric_effects(rig):
     base = vrig(rig, {})
     b = base.led_radiance(9)
@@ -54,6 +65,9 @@ def test_radiometric_effects(rig):
     em = vrig(rig, {"led_emission": 50.0}).led_radiance(9)
     r = em[..., 1][lit] / b[..., 1][lit]
     assert r.min() < 0.97 and r.std() > 0.005        # a pattern, not a constant
+    sample = lit & (np.abs(base.points_mm()[..., 1]) < rig.sample_height / 2)
+    r_sample = em[..., 1][sample] / b[..., 1][sample]
+    assert 0.4 < r_sample.min() and r_sample.max() < 1.1   # cos^50 of a few degrees, never blacked out
     st = vrig(rig, {"stray_light": 0.01})
     img = st.image_radiance([9], np.random.default_rng(0))
     bg = b[..., 1] == 0                                 # pixels that see nothing

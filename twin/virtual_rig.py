@@ -104,7 +104,8 @@ class VirtualRig:
 
             scene, _ = sample_scene(self.rig, self.material, self._spec, Path(self._workdir.name), aov=True)
             aov = render_array(scene, spp=1)
-            self._points = self.lens.apply(aov[..., 3:6], nearest=True) / MM
+            # the aov integrator writes only its AOVs: channels 0-2 "pos", 3-5 "nn"
+            self._points = self.lens.apply(aov[..., 0:3], nearest=True) / MM
             del scene
         return self._points
 
