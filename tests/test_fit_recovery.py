@@ -1,5 +1,5 @@
 """The recovery study's comparison (validation/recovery_study.py) and footprint model
-(validation/recovery_footprint.py): canonical truth, the data-driven resolvability
+(glossrig.core.footprint): canonical truth, the data-driven resolvability
 criterion, and the footprint average of a sample."""
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ def _load(name):
 
 
 study = _load("recovery_study")
-footprint = _load("recovery_footprint")
+from glossrig.core import footprint  # noqa: E402
 
 
 def _fit_dict(p: WardParams, residual: float = 0.003, rot_se: float = 1e-3) -> dict:
