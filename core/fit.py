@@ -454,6 +454,24 @@ def canonical(params: WardParams, covariance: np.ndarray | None = None):
     return p, cov
 
 
+def parameter_errors(fit, truth) -> dict[str, float]:
+    """Errors of fitted extended-Ward parameters against the truth: ``rho_d``,
+    ``rho_s``, ``alpha_x``, ``alpha_y`` relative (fitted / true - 1) and
+    ``lobe_rotation_deg``, the absolute rotation error in degrees modulo pi.
+    Both are compared in :func:`canonical` form, so a truth written with
+    ``alpha_x < alpha_y`` (Table 9.1's sample 0/6) meets the fit's axes.
+    ``fit`` and ``truth``: :class:`WardParams` or dicts holding its fields."""
+    def params(x) -> WardParams:
+        return x if isinstance(x, WardParams) else WardParams(**{k: float(x[k]) for k in PARAM_NAMES})
+
+    f, _ = canonical(params(fit))
+    t, _ = canonical(params(truth))
+    out = {k: getattr(f, k) / getattr(t, k) - 1 for k in ("rho_d", "rho_s", "alpha_x", "alpha_y")}
+    d = (f.lobe_rotation - t.lobe_rotation) % math.pi
+    out["lobe_rotation_deg"] = math.degrees(min(d, math.pi - d))
+    return out
+
+
 def _sandwich(J: np.ndarray, r: np.ndarray, rel_tol: float = 1e-10) -> np.ndarray:
     """HC1 sandwich covariance of least-squares parameters; inf along directions
     the data do not determine (eigenvalues of the scaled J'J below ``rel_tol``)."""

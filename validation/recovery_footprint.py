@@ -62,7 +62,7 @@ def study(work: Path, material: str, render: str, fit: bool = True, at_scale: fl
     for captures at that scale instead of the one measured, by scaling the measured
     Jacobian by (measured scale / at_scale) at the same samples (the footprint shrinks
     with the pixel; the number of samples, which grows, is not modelled)."""
-    from glossrig.core.fit import canonical, fit_samples
+    from glossrig.core.fit import fit_samples, parameter_errors
     from glossrig.core.samples import luminance, read_samples
     from glossrig.core.ward import WardParams, ward_from_angles
 
@@ -119,12 +119,8 @@ def study(work: Path, material: str, render: str, fit: bool = True, at_scale: fl
     if fit:
         # the pipeline's own fit (`glossrig fit`'s defaults: luminance, the table's weight column)
         r = fit_samples(df.assign(r=f_meas, g=f_meas, b=f_meas), channels=["luminance"]).fits["luminance"]
-        t, _ = canonical(p)
         out["footprint_only_fit"] = r.params.as_dict()
-        out["footprint_only_rel_err"] = {k: getattr(r.params, k) / getattr(t, k) - 1
-                                         for k in ("rho_d", "rho_s", "alpha_x", "alpha_y")}
-        d = (r.params.lobe_rotation - t.lobe_rotation) % math.pi
-        out["footprint_only_rel_err"]["lobe_rotation_deg"] = math.degrees(min(d, math.pi - d))
+        out["footprint_only_rel_err"] = parameter_errors(r.params, p)
     return out
 
 

@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from glossrig.core.fit import parameter_errors
+
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parent.parent / "shared"
 TARGETS = {"rho_d": 0.03, "rho_s": 0.10, "alpha_x": 0.10, "alpha_y": 0.10, "lobe_rotation_deg": 3.0}
@@ -47,20 +49,6 @@ FOOTPRINT_CMD = "python validation/recovery_footprint.py --work {work} --materia
 def materials() -> list[str]:
     rows = [r for r in csv.reader(l for l in open(SHARED / "data/thesis/ward_params.csv") if not l.startswith("#"))]
     return [r[0] for r in rows[1:]]
-
-
-def errors(fit: dict, truth: dict) -> dict:
-    """Relative errors of rho_d, rho_s, alpha_x, alpha_y (fitted / true - 1) and the lobe
-    rotation's absolute error in degrees (modulo pi), against the truth in the fit's
-    canonical form."""
-    from glossrig.core.fit import canonical
-    from glossrig.core.ward import WardParams
-
-    t, _ = canonical(WardParams(**{k: truth[k] for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")}))
-    out = {k: fit[k] / getattr(t, k) - 1 for k in ("rho_d", "rho_s", "alpha_x", "alpha_y")}
-    d = (fit["lobe_rotation"] - t.lobe_rotation) % math.pi
-    out["lobe_rotation_deg"] = math.degrees(min(d, math.pi - d))
-    return out
 
 
 def lobe_contrast(samples, fit: dict) -> float:
@@ -100,7 +88,7 @@ def evaluate(work: Path, rep: dict) -> dict:
             continue
         df = pd.read_parquet(work / f"{m}.parquet", columns=["theta_in", "theta_out", "theta_h", "phi_h"])
         c = lobe_contrast(df, e["fit"])
-        err = errors(e["fit"], e["truth"])
+        err = parameter_errors(e["fit"], e["truth"])
         ok = resolvable(e["fit"], c)
         out[m] = {"err": err, "contrast": c, "resolvable": ok, "met": judge(err, ok),
                   "brdf_err": e["median_abs_rel_err"], "residual": e["fit"]["residuals"]["median_abs_relative"]}
@@ -333,7 +321,7 @@ def section_scale(runs: list[Path]) -> list[str]:
         for m, e in rep.get("materials", {}).items():
             if "fit" not in e:
                 continue
-            err = errors(e["fit"], e["truth"])
+            err = parameter_errors(e["fit"], e["truth"])
             rows.append((run, rep, m, e, err, fps.get(m)))
     if not rows:
         return []

@@ -39,11 +39,12 @@ from pathlib import Path
 
 import numpy as np
 
+from glossrig.core.fit import parameter_errors
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 sys.path.insert(0, str(HERE.parent))
 from pipeline_study import glossrig  # noqa: E402
-from recovery_study import errors as ward_errors  # noqa: E402
 
 THESIS = ROOT / "scenes/thesis_rig.toml"
 OPTIMISED = ROOT / "scenes/optimised_rig.toml"
@@ -112,7 +113,7 @@ def extract_fit(capture: Path, ref: Path, cam: Path, lamps: Path) -> dict:
         glossrig("fit", sp, "--out", fj, "--channels", "luminance")
     f = json.loads(fj.read_text())["luminance"]
     t = json.loads((capture / "truth.json").read_text())["material"]["ward"]
-    err = ward_errors(f, t)
+    err = parameter_errors(f, t)
     return {"fit": {k: f[k] for k in (*PARAMS, "lobe_rotation")}, "error": err}
 
 
