@@ -1,11 +1,13 @@
 """Blind study of glossrig diagnose (issue 7): hidden causes at seeded random magnitudes.
 
-    nice -n 5 python validation/diagnose/blind_study.py --work /tmp/blind --trials 55 \\
-        --camera camera.json --lamps lamps.json --reference REF_DIR
+    nice -n 5 python validation/diagnose/blind_study.py --work /tmp/blind --trials 55
 
-CAMERA, LAMPS and REF_DIR are one calibration of the nominal rig at scale 0.25 (the
-reference: lambert:0.8 with LEDs 6 and 9 at rotation 0 or a superset), reused by
-every trial; the reference is measured once. Set-up (first run): one null sample_2_6
+Calibration (first run, in WORK/calibration, unless --camera, --lamps and --reference
+name one of the nominal rig at scale 0.25): camera and lamps by
+validation/pipeline_study.py's ``calibrate`` (12 checkerboard views, seed 1; a
+transparency-sheet capture of LEDs 6 and 9, seed 2) and a lambert:0.8 reference capture
+(LEDs 6 and 9, rotation 0, seed 3), all ``--ideal`` like the trials; reused by every
+trial, the reference measured once. Set-up (first run): one null sample_2_6
 capture (seed 999) whose Ward fit becomes the material fit passed as --fit to every
 trial (a fit from another capture of the material, so a rotation offset is testable),
 and whose DNGs are rewritten outside the twin for black_level_offset and
@@ -16,7 +18,9 @@ sensor_nonlinearity (glossrig.core.diagnose.hide), and whose geometric calibrati
 rewriting; then diagnose runs blind. Budget per trial (2 cores shared by four
 engineers): BRDF rows capped at ``ROWS``, frame pixels at ``PIXELS``, rows of the
 geometry causes' non-linear fits at ``FIT_ROWS``. Resumable: finished trials are kept in
-WORK/trials.json; rerunning continues. Writes validation/diagnose/blind_study.md.
+WORK/trials.json; rerunning continues. Each trial records the commit (and whether
+core/ or twin/ had uncommitted changes) its capture and its diagnosis ran with. Writes
+validation/diagnose/blind_study.md.
 """
 from __future__ import annotations
 
@@ -33,6 +37,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "validation"))
+from pipeline_study import calibrate, simulate as simulate_capture  # noqa: E402
+
 RIG = ROOT / "scenes/thesis_rig.toml"
 OUT = Path(__file__).parent / "blind_study.md"
 LEDS = (6, 9)
@@ -57,6 +64,30 @@ def simulate(out: Path, seed: int, effects: str | None = None):
             "--rotations", 0, "--repeats", 1, "--scale", 0.25, "--seed", seed, "--ideal", "--no-progress",
             "--out", out]
     glossrig(*args, *(["--effects", effects] if effects else []))
+
+
+def calibration(work: Path, a) -> tuple[str, str, str]:
+    """Camera, lamps and reference: the given ones, or the study's own calibration of the
+    nominal rig in WORK/calibration (resumable)."""
+    given = [a.camera, a.lamps, a.reference]
+    if all(given):
+        return a.camera, a.lamps, a.reference
+    if any(given):
+        raise SystemExit("give all of --camera, --lamps and --reference, or none")
+    out = work / "calibration"
+    out.mkdir(parents=True, exist_ok=True)
+    leds = ",".join(map(str, LEDS))
+    cam, lamps = calibrate(out, 0.25, 1, leds=leds, extra=("--ideal",))
+    ref = simulate_capture(out / "reference", "lambert:0.8", 0.25, 3, "0", 1, extra=("--ideal",), leds=leds)
+    return str(cam), str(lamps), str(ref)
+
+
+def code_version() -> dict:
+    """The commit the working tree is at, and whether core/ or twin/ differ from it."""
+    def git(*args):
+        return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True).stdout.strip()
+    return {"commit": git("rev-parse", "--short", "HEAD"),
+            "dirty": bool(git("status", "--porcelain", "--untracked-files=no", "--", "core", "twin"))}
 
 
 def setup(work: Path, a):
@@ -134,6 +165,7 @@ def trial(k: int, work: Path, a, null: Path, fit: Path, ref) -> dict:
         value = -value
     cap = work / f"t{k:03d}"
     t0 = time.time()
+    code = {"capture": code_version(), "diagnose": a.diagnose_code}
     if how == "rewrite":
         from glossrig.core.diagnose.hide import rewrite_capture
 
@@ -152,7 +184,7 @@ def trial(k: int, work: Path, a, null: Path, fit: Path, ref) -> dict:
            "verdict": rep["verdict"], "estimate": c["magnitude"] if c else None,
            "gain": c["gain"] if c else None, "significant": c["significant"] if c else None,
            "top": [(x["name"], round(x["gain"], 4), x["significant"]) for x in rep["causes"][:4]],
-           "time_s": time.time() - t0, **({"error": rep["error"]} if "error" in rep else {})}
+           "time_s": time.time() - t0, "code": code, **({"error": rep["error"]} if "error" in rep else {})}
     if how != "rewrite":
         for f in cap.glob("*.dng"):          # keep truth and manifest, drop the raw files
             f.unlink()
@@ -199,6 +231,18 @@ def gain_table(trials: list[dict], work: Path | None) -> list[str]:
     return L
 
 
+def provenance(trials: list[dict]) -> str:
+    """Which code the captures and diagnoses ran with (trials.json records it per trial)."""
+    def fmt(key):
+        seen = {}
+        for t in trials:
+            c = t.get("code", {}).get(key)
+            label = "unrecorded" if c is None else c["commit"] + (" + uncommitted core/twin changes" if c["dirty"] else "")
+            seen.setdefault(label, []).append(t["trial"])
+        return "; ".join(f"{lab} (trials {min(ks)}-{max(ks)}, {len(ks)})" for lab, ks in seen.items())
+    return f"Code: captures at {fmt('capture')}; diagnoses at {fmt('diagnose')}."
+
+
 def summarise(trials: list[dict], work: Path | None = None) -> str:
     gains = gain_table(trials, work)       # also refreshes the hidden magnitudes from the captures
     names = list(CAUSES)
@@ -211,13 +255,14 @@ def summarise(trials: list[dict], work: Path | None = None) -> str:
     fa = np.mean([t["verdict"] != "none" for t in nulls]) if nulls else float("nan")
     L = ["# diagnose blind study", "",
          "Regenerate (resumable; a trial costs ~1-2 min on one core):", "",
-         "    nice -n 5 python validation/diagnose/blind_study.py --work /tmp/blind --trials 55 \\",
-         "        --camera CAMERA --lamps LAMPS --reference REF_DIR", "",
+         "    nice -n 5 python validation/diagnose/blind_study.py --work /tmp/blind --trials 55", "",
          f"Set-up: sample_2_6 on the thesis rig, LEDs {LEDS}, rotation 0, scale 0.25, `--ideal`; one nominal "
-         "camera/lamp calibration and lambert:0.8 reference for all trials; material fit from one null capture "
+         "camera/lamp calibration and lambert:0.8 reference for all trials (the study's own, WORK/calibration, unless "
+         "given); material fit from one null capture "
          "(--fit), whose poses are reused by every trial; black offset and non-linearity rewritten into that "
          "capture's DNGs outside the twin. "
          f"Budget: BRDF rows <= {ROWS}, frame pixels <= {PIXELS}, geometry-fit rows <= {FIT_ROWS}.", "",
+         provenance(trials), "",
          f"trials completed: {len(trials)}  ", f"top-1 accuracy: {acc:.1%}  ",
          f"false-alarm rate (null captures): {fa:.1%} of {len(nulls)} (targets: >= 90 %, <= 5 %)", "",
          "## Confusion matrix (rows: hidden cause, columns: verdict)", "",
@@ -241,9 +286,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", required=True)
     ap.add_argument("--trials", type=int, default=55)
-    ap.add_argument("--camera", required=True)
-    ap.add_argument("--lamps", required=True)
-    ap.add_argument("--reference", required=True)
+    ap.add_argument("--camera", help="camera.json of the nominal rig at scale 0.25 (default: the study's own)")
+    ap.add_argument("--lamps", help="lamps.json of the same calibration")
+    ap.add_argument("--reference", help="lambert:0.8 reference capture (LEDs 6 and 9 at rotation 0 or a superset)")
     ap.add_argument("--summary-only", action="store_true", help="rewrite the Markdown from WORK/trials.json")
     a = ap.parse_args(argv)
     work = Path(a.work)
@@ -258,6 +303,8 @@ def main(argv=None):
         from glossrig.core.intrinsics import load_camera
         from glossrig.core.lamps import load_lamps
 
+        a.camera, a.lamps, a.reference = calibration(work, a)
+        a.diagnose_code = code_version()      # the diagnosis modules are imported once, now
         null, fit = setup(work, a)
         ref = measure_capture(a.reference, load_camera(a.camera), load_lamps(a.lamps))
         one_calibration(null, a.camera)
