@@ -42,11 +42,39 @@ subsets are enumerated by size and the cheapest feasible one is kept, stopping w
 ``k`` shots cannot beat it. Pixels are grouped into 2 % wide bins of rate with
 conservative rates (brightest pixel of a bin for saturation, darkest for noise).
 (A greedy "longest usable exposure for the brightest failing pixel" needed up to
-twice the time on the Table 9.1 materials.) LED jitter is not a sensor noise and is not
-part of the target (the twin adds it; :func:`glossrig.core.hdr.neighbour_correct`
-removes the part it can); one sequence per LED is planned (a second sequence
-halves the variance of a pixel at the cost of every shot again, while a longer
-exposure gains more for less).
+twice the time on the Table 9.1 materials.) One sequence per LED is planned (a second
+sequence halves the variance of a pixel at the cost of every shot again, while a
+longer exposure gains more for less).
+
+3. LED jitter (``jitter`` > 0): the LED's output differs from frame to frame
+   (thesis 4.3.3, fig. 4.12; the twin's ``led_jitter``, 0.5 % RMS). That error is
+   common to every pixel of a frame, so unlike sensor noise it does not average
+   out over the thousands of pixels a fit uses: a plan whose frames keep their own
+   gains misses rho_d/rho_s by a few tenths of a per cent per LED
+   (validation/design/twin.md) while the full table, whose frames neighbour
+   correction ties together, does not. The planner predicts the pipeline's
+   neighbour correction (:func:`glossrig.core.hdr.neighbour_correct`, thesis
+   eq. 4.32-4.38, method "robust") from the predicted values of each sequence
+   (:func:`neighbour_links`): the same centre-out chain, the same choice of the
+   third image q and of the pixels (q, a and b unsaturated, a and b inside
+   :data:`~glossrig.core.hdr.NEIGHBOUR_WINDOW`), the same fallback to earlier
+   anchored images and the same :data:`~glossrig.core.hdr.NEIGHBOUR_MIN_PIXELS`,
+   counted at the capture's resolution (``pixel_factor``). A linked frame carries
+   the reference frame's gain, up to the shot noise of the ratio its link rests
+   on (accumulated along the chain); patch normalisation (eq. 4.45-4.50) divides
+   the reference's gain out. An unlinked frame keeps its own gain. The gain error
+   of a pixel's HDR value is then, with hdr_ml's weights w_k of the frames
+   (:func:`gain_relative`)
+
+       sigma_g^2 = j^2 (sum_u w_k^2 + (sum_u w_k)^2) + (sum_l w_k s_k)^2
+
+   over unlinked frames u (own gain minus the reference's, jitter j each) and
+   linked frames l (chain error s_k, summed as if fully correlated: a bound).
+   Requirement: sigma_g <= max(``gain_target``, ``tail`` x the full table's) on
+   every measured pixel. The white patch is assumed to lie in linked frames (its
+   exposure is that of a bright diffuse surface, the middle of the sequence where
+   the reference frame is). Slow drift is a gain per frame as well and is treated
+   by the pipeline the same way; only the jitter is modelled.
 """
 from __future__ import annotations
 
@@ -59,6 +87,7 @@ import numpy as np
 from . import coverage as cov
 from .errors import InputError
 from .fisher import HdrNoise
+from .hdr import NEIGHBOUR_MIN_PIXELS, NEIGHBOUR_WINDOW, _pairs_centre_out
 from .materials import Material
 from .ward import ward_from_angles
 
@@ -66,6 +95,10 @@ from .ward import ward_from_angles
 LO_FRACTION = 0.002
 #: Where even the full table misses the noise target, a plan may be this much noisier than it.
 TAIL = 2.0
+#: LED frame-to-frame jitter, relative RMS (thesis 4.3.3, fig. 4.12; the twin's led_jitter).
+THESIS_JITTER = 0.005
+#: Default target of the gain error common to a frame's pixels (requirement 3).
+GAIN_TARGET = 0.001
 
 
 def material_brdf(material: Material, a: dict, rotation_deg: float) -> np.ndarray:
@@ -81,14 +114,14 @@ def material_brdf(material: Material, a: dict, rotation_deg: float) -> np.ndarra
 
 
 def pixel_rates(rig, material: Material, led: int, rotations: Sequence[float], scale: float,
-                noise: HdrNoise, pixels: cov.PixelGeometry | None = None) -> np.ndarray:
-    """Green photo-electron rates (e-/s) of every lit pixel of ``led`` over the rotations."""
+                noise: HdrNoise, pixels: cov.PixelGeometry | None = None) -> list[np.ndarray]:
+    """Green photo-electron rates (e-/s) of every lit pixel of ``led``, one array per
+    rotation (each rotation is its own exposure sequence)."""
     px = cov.pixel_geometry(rig, scale) if pixels is None else pixels
     a = cov.direction_angles(px, rig.led(led).position, half=True)
     lit = a["lit"]
     sub = {k: v[lit] for k, v in a.items() if isinstance(v, np.ndarray) and v.shape == lit.shape}
-    rates = [noise.electron_rate(material_brdf(material, sub, r), sub["cos_in"], sub["dist_in"]) for r in rotations]
-    return np.concatenate(rates) if rates else np.zeros(0)
+    return [noise.electron_rate(material_brdf(material, sub, r), sub["cos_in"], sub["dist_in"]) for r in rotations]
 
 
 @dataclass
@@ -105,6 +138,9 @@ class LedExposures:
     median_noise_full: float      # the same with the full table, one sequence
     unmeasured_fraction: float    # lit pixels with no valid planned exposure
     unmeasured_fraction_full: float
+    gain_noise_worst: float = math.nan        # worst predicted frame-gain error (requirement 3) of the plan
+    gain_noise_worst_full: float = math.nan   # the same with the full table, one sequence
+    unlinked_frames: int = 0                  # planned frames neighbour correction leaves uncorrected (all rotations)
 
     def to_json(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -127,12 +163,80 @@ def rate_bins(rates: np.ndarray, margin: float, width: float = 0.02) -> tuple[np
     return hi * margin, lo / margin, count
 
 
-def plan_led(rates: np.ndarray, table: Sequence[float], noise: HdrNoise, target: float, margin: float = 1.1,
-             overhead_s: float = 0.0, max_shots: int | None = None, tail: float = TAIL) -> tuple[tuple[float, ...], dict]:
+def neighbour_links(times: Sequence[float], hi: np.ndarray, lo: np.ndarray, count: np.ndarray, noise: HdrNoise,
+                    pixel_factor: float = 1.0, min_pixels: int = NEIGHBOUR_MIN_PIXELS) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted neighbour correction of one sequence (requirement 3 of the module docstring).
+
+    ``times`` increasing; pixels as :func:`rate_bins` gives them (``hi``: rate for
+    saturation and the window's top, ``lo``: for the window's bottom, ``count``
+    pixels each, times ``pixel_factor`` at the capture's resolution). Mirrors
+    :func:`glossrig.core.hdr.neighbour_correct` (method "robust", reference the
+    centre frame): returns ``linked`` (n,) bool, whether each frame ends up carrying
+    the reference frame's gain, and ``chain_var`` (n,), the relative variance of its
+    correction factor from shot, dark, read and quantisation noise of the ratios on
+    its chain (0 for the reference, inf for a frame left uncorrected)."""
+    T = np.asarray(times, float)
+    n = T.size
+    S = noise.saturation_e
+    w_lo, w_hi = NEIGHBOUR_WINDOW
+    nom = np.sqrt(hi * lo)
+    K = noise.conversion_gain
+    unsat = [hi * t < S for t in T]
+    window = [(lo * t > w_lo * S) & (hi * t < w_hi * S) for t in T]
+    ref = n // 2
+    linked = np.zeros(n, bool)
+    linked[ref] = True
+    chain = np.full(n, np.inf)
+    chain[ref] = 0.0
+
+    def rel_var(sel, t):          # relative variance of the sum of a frame's values over sel
+        e = nom[sel] * t
+        v = e + noise.dark_current_e_s * t + noise.read_noise_e ** 2 + K * K / 12.0
+        w = count[sel]
+        return float(np.sum(w * v) / np.sum(w * e) ** 2) / pixel_factor
+
+    for a, b in _pairs_centre_out(n, ref):
+        step = 1 if b > a else -1
+        for c in range(a, ref - step, -step):
+            if not linked[c]:
+                continue
+            q = next((k for k in (c - step, b + step) if 0 <= k < n and k not in (c, b)), None)
+            sel = unsat[c] & unsat[b] & window[c] & window[b]
+            if q is not None:
+                sel &= unsat[q]
+            if count[sel].sum() * pixel_factor >= min_pixels:
+                linked[b] = True
+                chain[b] = chain[c] + rel_var(sel, T[b]) + rel_var(sel, T[c])
+                break
+    return linked, chain
+
+
+def gain_relative(info: np.ndarray, linked: np.ndarray, chain_var: np.ndarray, jitter: float) -> np.ndarray:
+    """Relative error of each pixel's HDR value from the frames' LED gains (requirement 3):
+    ``info`` (n_frames, n_pixels) the HDR merge's information per frame (hdr_ml's
+    weights), ``linked``/``chain_var`` from :func:`neighbour_links`, ``jitter`` the
+    LED's relative RMS per frame (one repeat per frame)."""
+    tot = info.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(tot > 0, info / tot, 0.0)
+    wu = w[~linked]
+    s = np.sqrt(np.where(linked, chain_var, 0.0))[:, None]
+    var = jitter ** 2 * ((wu ** 2).sum(axis=0) + wu.sum(axis=0) ** 2) + (w * s).sum(axis=0) ** 2
+    return np.where(tot > 0, np.sqrt(var), np.inf)
+
+
+def plan_led(rates, table: Sequence[float], noise: HdrNoise, target: float, margin: float = 1.1,
+             overhead_s: float = 0.0, max_shots: int | None = None, tail: float = TAIL, *, jitter: float = 0.0,
+             gain_target: float = GAIN_TARGET, pixel_factor: float = 1.0) -> tuple[tuple[float, ...], dict]:
     """The exposure subset of ``table`` of least time (sum of exposures plus
     ``overhead_s`` per shot) that meets the requirements of the module docstring for
     one LED's pixel rates; exact: subsets are enumerated by size until ``k`` shots
-    cannot beat the best time found (``k * overhead + the k shortest exposures``)."""
+    cannot beat the best time found (``k * overhead + the k shortest exposures``).
+
+    ``rates``: one array of pixel rates, or a list of them, one per sequence (sample
+    rotation). With ``jitter`` > 0, requirement 3 (LED jitter, neighbour correction
+    predicted per sequence with ``pixel_factor`` capture pixels per predicted pixel)
+    is checked on the candidates in order of time."""
     from itertools import combinations
 
     if not (math.isfinite(target) and 0 < target < 1):
@@ -141,22 +245,61 @@ def plan_led(rates: np.ndarray, table: Sequence[float], noise: HdrNoise, target:
         raise InputError(f"brightness margin must be >= 1, got {margin!r}")
     if not (math.isfinite(overhead_s) and overhead_s >= 0):
         raise InputError(f"overhead per shot must be >= 0 s, got {overhead_s!r}")
+    if not (math.isfinite(jitter) and 0 <= jitter < 1):
+        raise InputError(f"LED jitter must lie in [0, 1), got {jitter!r}")
+    if jitter > 0 and not (math.isfinite(gain_target) and 0 < gain_target < 1):
+        raise InputError(f"gain error target must lie in (0, 1), got {gain_target!r}")
+    if not (math.isfinite(pixel_factor) and pixel_factor > 0):
+        raise InputError(f"pixel factor must be > 0, got {pixel_factor!r}")
     T = np.array(sorted(set(float(t) for t in table)))
     if T.size == 0 or T[0] <= 0:
         raise InputError("exposure table must hold positive times")
-    hi, lo, count = rate_bins(rates, margin)
+    seqs = [np.asarray(r, float) for r in rates] if isinstance(rates, (list, tuple)) else [np.asarray(rates, float)]
+    hi, lo, count = rate_bins(np.concatenate(seqs) if seqs else np.zeros(0), margin)
     cap = noise.usable_fraction * noise.saturation_e
     floor = LO_FRACTION * noise.saturation_e
     K = noise.conversion_gain
-    t = T[:, None]
-    usable = hi[None, :] * t < cap                                    # (n_t, n_bins)
-    valid = usable & (lo[None, :] * t >= floor)
-    var = (lo[None, :] * t + noise.dark_current_e_s * t + noise.read_noise_e ** 2 + K * K / 12.0) / (t * t)
-    info = np.where(usable, 1.0 / var, 0.0)
+
+    def information(h, l, times):
+        t = np.asarray(times, float)[:, None]
+        usable = h[None, :] * t < cap
+        var = (l[None, :] * t + noise.dark_current_e_s * t + noise.read_noise_e ** 2 + K * K / 12.0) / (t * t)
+        return usable, np.where(usable, 1.0 / var, 0.0)
+
+    usable, info = information(hi, lo, T)                             # (n_t, n_bins)
+    valid = usable & (lo[None, :] * T[:, None] >= floor)
     full = info.sum(axis=0)
     need = np.minimum((target * lo) ** -2.0, full / tail ** 2)       # information each bin must reach
     domain = (target * lo) ** -2.0 <= full / tail ** 2               # the target itself applies
     measurable = valid.any(axis=0)
+
+    # requirement 3, per sequence: its bins, their information per table exposure and
+    # the bound (gain target, or tail x the full table's gain error)
+    seq_bins = []
+    if jitter > 0:
+        for r in seqs:
+            h, l, c = rate_bins(r, margin)
+            u, inf_ = information(h, l, T)
+            m = (u & (l[None, :] * T[:, None] >= floor)).any(axis=0)
+            g_full = gain_relative(inf_, *neighbour_links(T, h, l, c, noise, pixel_factor), jitter)
+            seq_bins.append((h, l, c, inf_, m, np.maximum(gain_target, tail * g_full), g_full))
+
+    def gain_check(idx, stop: bool = True):
+        """(requirement 3 met, worst gain error, worst of the full table, unlinked frames used by a pixel)."""
+        ok, worst, worst_full, unl = True, 0.0, 0.0, 0
+        t = T[idx]
+        for h, l, c, inf_, m, bound, g_full in seq_bins:
+            linked, chain = neighbour_links(t, h, l, c, noise, pixel_factor)
+            g = gain_relative(inf_[idx], linked, chain, jitter)
+            meas = m & ((h[None, :] * t[:, None] < cap) & (l[None, :] * t[:, None] >= floor)).any(axis=0)
+            ok = ok and bool(np.all(g[meas] <= bound[meas] * (1 + 1e-9)))
+            if stop and not ok:
+                break
+            worst = max(worst, float(np.max(g[meas], initial=0.0)))
+            worst_full = max(worst_full, float(np.max(g_full[m], initial=0.0)))
+            unl += int(np.count_nonzero(~linked & (inf_[idx].sum(axis=1) > 0)))
+        return ok, worst, worst_full, unl
+
     # Shot noise alone gives info <= t / rate per usable exposure, so any feasible
     # subset exposes for at least max(need * rate) seconds: a bound that stops the
     # enumeration as soon as more shots cannot be cheaper.
@@ -173,13 +316,16 @@ def plan_led(rates: np.ndarray, table: Sequence[float], noise: HdrNoise, target:
                 ok[ok] = np.all(info[chunk[ok]].sum(axis=1) >= need, axis=1)
             if ok.any():
                 cost = T[chunk].sum(axis=1) + k * overhead_s
-                cost = np.where(ok, cost, np.inf)
-                j = int(np.argmin(cost))
-                if cost[j] < best_cost:
-                    best, best_cost = chunk[j], float(cost[j])
+                cand = np.flatnonzero(ok & (cost < best_cost))
+                for j in cand[np.argsort(cost[cand], kind="stable")]:
+                    if not seq_bins or gain_check(chunk[j])[0]:
+                        best, best_cost = chunk[j], float(cost[j])
+                        break
     if best is None:
-        raise InputError(f"no subset of at most {n_max} exposures meets the noise target {target:g}")
-    chosen = tuple(float(x) for x in T[np.sort(best)])
+        raise InputError(f"no subset of at most {n_max} exposures meets the noise target {target:g}"
+                         + (f" and the gain error target {gain_target:g}" if seq_bins else ""))
+    best = np.sort(best)
+    chosen = tuple(float(x) for x in T[best])
     tot = info[best].sum(axis=0)
     with np.errstate(divide="ignore"):
         plan_noise = np.where(tot > 0, 1.0 / (np.sqrt(tot) * lo), np.inf)
@@ -194,7 +340,7 @@ def plan_led(rates: np.ndarray, table: Sequence[float], noise: HdrNoise, target:
         o = np.argsort(x)
         return float(x[o][np.searchsorted(np.cumsum(w[o]), 0.5 * w.sum())])
 
-    return chosen, {
+    stats = {
         "lit_pixels": int(count.sum()),
         "target_fraction": float(count[domain].sum() / n),
         "worst_noise": float(plan_noise[domain].max()) if domain.any() else math.nan,
@@ -205,6 +351,10 @@ def plan_led(rates: np.ndarray, table: Sequence[float], noise: HdrNoise, target:
         "unmeasured_fraction": float(count[~meas].sum() / n),
         "unmeasured_fraction_full": float(count[~measurable].sum() / n),
     }
+    if seq_bins:
+        _, worst, worst_full, unl = gain_check(best, stop=False)
+        stats.update(gain_noise_worst=worst, gain_noise_worst_full=worst_full, unlinked_frames=unl)
+    return chosen, stats
 
 
 @dataclass
@@ -220,6 +370,9 @@ class ExposurePlan:
     scale: float
     noise_model: str = field(default="")
     overhead_s: float = 0.0
+    jitter: float = 0.0
+    gain_target: float = GAIN_TARGET
+    capture_scale: float = 1.0
 
     def time_s_per_rotation(self) -> float:
         """Exposures plus the per-shot overhead of one rotation (one sequence per LED)."""
@@ -237,23 +390,35 @@ class ExposurePlan:
     def to_json(self) -> dict:
         return {"material": self.material.to_json(), "rotations": list(self.rotations), "table_s": list(self.table_s),
                 "noise_target": self.noise_target, "margin": self.margin, "scale": self.scale,
-                "noise_model": self.noise_model, "overhead_s": self.overhead_s, "leds": [e.to_json() for e in self.leds]}
+                "noise_model": self.noise_model, "overhead_s": self.overhead_s, "jitter": self.jitter,
+                "gain_target": self.gain_target, "capture_scale": self.capture_scale,
+                "leds": [e.to_json() for e in self.leds]}
 
 
 def plan_exposures(rig, material: Material, led_ids: Sequence[int], rotations: Sequence[float],
                    noise_target: float = 0.03, margin: float = 1.1, scale: float = 0.25,
-                   table: Sequence[float] | None = None, *, overhead_s: float) -> ExposurePlan:
+                   table: Sequence[float] | None = None, *, overhead_s: float, jitter: float = THESIS_JITTER,
+                   gain_target: float = GAIN_TARGET, capture_scale: float = 1.0) -> ExposurePlan:
     """Per-LED exposures for ``material`` on ``rig`` (module docstring), chosen from
     ``table`` (default: the rig's exposure table, thesis table 4.1); ``overhead_s`` is
-    the time per shot beyond its exposure (the hardware layer's measured figure)."""
+    the time per shot beyond its exposure (the hardware layer's measured figure).
+    ``jitter`` (0 to leave requirement 3 out) and ``gain_target``: requirement 3;
+    ``capture_scale``: the image scale the capture is made at (1 on the rig), for the
+    pixel counts of neighbour correction (green pixels only are predicted, so half the
+    mosaic's pixels are counted, a conservative choice)."""
+    if not (math.isfinite(capture_scale) and capture_scale > 0):
+        raise InputError(f"capture scale must be > 0, got {capture_scale!r}")
     noise = HdrNoise.from_rig(rig, led_rel=0.0)
     table = tuple(rig.exposure_times_s if table is None else table)
     px = cov.pixel_geometry(rig, scale)
+    factor = 0.5 * (capture_scale / scale) ** 2
     out = []
     for led in led_ids:
         rates = pixel_rates(rig, material, led, rotations, scale, noise, pixels=px)
-        times, stats = plan_led(rates, table, noise, noise_target, margin, overhead_s)
+        times, stats = plan_led(rates, table, noise, noise_target, margin, overhead_s, jitter=jitter,
+                                gain_target=gain_target, pixel_factor=factor)
         out.append(LedExposures(led=int(led), exposures_s=times, **stats))
     return ExposurePlan(material=material, leds=out, rotations=tuple(float(r) for r in rotations),
                         table_s=tuple(sorted(table)), noise_target=noise_target, margin=margin, scale=scale,
-                        noise_model=noise.describe(), overhead_s=overhead_s)
+                        noise_model=noise.describe(), overhead_s=overhead_s, jitter=jitter, gain_target=gain_target,
+                        capture_scale=capture_scale)

@@ -357,8 +357,16 @@ def _gain_ratio(out: np.ndarray, sat: np.ndarray, t: np.ndarray, a: int, b: int,
     return float((t[b] / t[a]) / rho), cnt                 # = R E_b / E_a: removes b's own gain
 
 
-def neighbour_correct(images, exposure_s, *, clipped=None, method: str = "robust", lo: float = 0.1,
-                      hi: float = 0.9, min_pixels: int = 100, reference: int | str = "centre"
+#: neighbour_correct's defaults: the value window of the pixels a gain ratio rests on, and
+#: the fewest such pixels that make a link (the thesis's 100); the exposure planner
+#: (:mod:`glossrig.core.exposure_plan`) predicts the links with the same figures.
+NEIGHBOUR_WINDOW = (0.1, 0.9)
+NEIGHBOUR_MIN_PIXELS = 100
+
+
+def neighbour_correct(images, exposure_s, *, clipped=None, method: str = "robust", lo: float = NEIGHBOUR_WINDOW[0],
+                      hi: float = NEIGHBOUR_WINDOW[1], min_pixels: int = NEIGHBOUR_MIN_PIXELS,
+                      reference: int | str = "centre"
                       ) -> tuple[np.ndarray, NeighbourReport]:
     """Thesis "Neighbor correction" (eq. 4.32-4.38): remove the LED's
     frame-to-frame intensity jitter from a combined sequence.

@@ -35,7 +35,16 @@ def add_arguments(p) -> None:
     p.add_argument("--margin", type=float, default=1.1,
                    help="brightness margin: saturation judged at margin x, noise at 1/margin x the predicted "
                         "signal, so the plan holds for the material's class (default 1.1)")
+    p.add_argument("--jitter", type=float, default=None,
+                   help="LED frame-to-frame jitter, relative RMS, for the gain requirement (default 0.005, thesis "
+                        "4.3.3; 0 leaves the requirement out)")
+    p.add_argument("--gain-noise", type=float, default=None,
+                   help="target of the gain error common to a frame's pixels after neighbour correction "
+                        "(default 0.001; where the whole table misses half of it, twice the whole table's)")
     p.add_argument("--scale", type=float, default=0.25, help="image scale the pixels are predicted at (default 0.25)")
+    p.add_argument("--capture-scale", type=float, default=1.0,
+                   help="image scale the capture is made at, for neighbour correction's pixel counts (default 1, "
+                        "the camera; a twin capture's --scale otherwise)")
     p.add_argument("--overhead", type=float, default=None,
                    help="seconds per shot beyond the exposure (default: the rig's [capture] figure, else the "
                         "thesis's measured 9.94 s)")
@@ -53,7 +62,9 @@ def plan_text(plan, rig_path: str, sample: str, leds, overhead_s: float) -> str:
         f"# Exposure plan for {plan.material.label} (glossrig design exposures): per LED the exposures of the",
         f"# rig's table that keep every pixel's HDR noise within {100 * plan.noise_target:g} % (sensor noise; where",
         "# the whole table misses half of that, within twice the whole table's), brightness margin "
-        f"{plan.margin:g}, one sequence per LED.",
+        f"{plan.margin:g}, one sequence per LED; LED jitter {100 * plan.jitter:g} % per frame: frame-gain error "
+        f"after neighbour correction within {100 * plan.gain_target:g} % (or twice the whole table's), capture "
+        f"scale {plan.capture_scale:g}.",
         f"# {plan.shots_per_rotation()} shots per rotation, {plan.exposure_s_per_rotation():.1f} s of exposure, "
         f"{plan.time_s_per_rotation() / 60:.1f} min with {overhead_s:.2f} s per shot.",
         "",
@@ -73,7 +84,7 @@ def plan_text(plan, rig_path: str, sample: str, leds, overhead_s: float) -> str:
 
 
 def run(args) -> int:
-    from glossrig.core.exposure_plan import plan_exposures
+    from glossrig.core.exposure_plan import GAIN_TARGET, THESIS_JITTER, plan_exposures
     from glossrig.core.materials import parse_material
     from glossrig.core.rig import REPO_ROOT, load_rig
     from glossrig.hardware.plan import THESIS_OVERHEAD_S, THESIS_SEQUENCE_S, format_duration, load_plan
@@ -93,7 +104,9 @@ def run(args) -> int:
     if not out.parent.is_dir():
         raise InputError("output folder does not exist", path=out)
     plan = plan_exposures(rig, material, leds, rots, noise_target=args.noise, margin=args.margin, scale=args.scale,
-                          overhead_s=overhead)
+                          overhead_s=overhead, jitter=THESIS_JITTER if args.jitter is None else args.jitter,
+                          gain_target=GAIN_TARGET if args.gain_noise is None else args.gain_noise,
+                          capture_scale=args.capture_scale)
     rig_ref = Path(args.rig).resolve()
     if not Path(args.rig).is_absolute() and (REPO_ROOT / args.rig).resolve() == rig_ref:
         rig_ref = Path(args.rig)           # repository-relative: the plan loader finds it from anywhere
@@ -106,7 +119,9 @@ def run(args) -> int:
     print(f"wrote {out}: {plan.shots_per_rotation()} shots per rotation over {len(leds)} LEDs")
     for e in plan.leds:
         print(f"  LED {e.led:2d}: " + ", ".join(f"{t:g}" for t in e.exposures_s) + " s   worst noise "
-              f"{100 * e.worst_noise:.2f} % on {100 * e.target_fraction:.0f} % of {e.lit_pixels} pixels")
+              f"{100 * e.worst_noise:.2f} % on {100 * e.target_fraction:.0f} % of {e.lit_pixels} pixels"
+              + (f", frame-gain error {100 * e.gain_noise_worst:.3f} % (whole table {100 * e.gain_noise_worst_full:.3f}"
+                 f" %), {e.unlinked_frames} frame(s) left uncorrected" if plan.jitter > 0 else ""))
     print(f"time per rotation {format_duration(plan.time_s_per_rotation())} "
           f"(exposures {format_duration(plan.exposure_s_per_rotation())}); the whole plan ({n_rot} rotation(s), "
           f"with calibration images) {format_duration(est.estimate_s)}")

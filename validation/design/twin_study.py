@@ -78,7 +78,7 @@ def planned_capture(out: Path, rig: Path, material: str, leds: str, rotations: s
     plan, report = out.with_suffix(".plan.toml"), out.with_suffix(".plan.json")
     if not report.exists():
         glossrig("design", "exposures", "--rig", rig, "--material", material, "--leds", leds,
-                 f"--rotations={rotations}", "--out", plan, "--report", report)
+                 f"--rotations={rotations}", "--capture-scale", scale, "--out", plan, "--report", report)
     if not complete(out):
         fresh(out)
         twin = plan.with_name(plan.stem + ".twin.toml")
