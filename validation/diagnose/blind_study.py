@@ -51,6 +51,7 @@ CAUSES = {"none": (0, 0, "twin"), "black_level_offset": (3, 15, "rewrite"),
           "led_emission": (5.0, 30.0, "twin"), "led_position_error": (1.0, 4.0, "twin"),
           "sample_radius_error": (0.2, 1.0, "twin"), "sample_rotation_offset": (1.0, 5.0, "twin")}
 SIGNED = {"sample_radius_error", "sample_rotation_offset"}
+NULL_SEED = 5000      # independent null captures: seeds 5000 + j (trials use 1000 + k, the fit 999)
 
 
 def glossrig(*args):
@@ -148,7 +149,9 @@ def true_magnitude(cause: str, value: float, cap: Path) -> float:
     return value
 
 
-def trial(k: int, work: Path, a, null: Path, fit: Path, ref) -> dict:
+def run_diagnose(cap: Path, out: Path, a, fit: Path, ref) -> dict:
+    """glossrig diagnose on one capture with the study's budget; a capture the pipeline
+    refuses is a failed trial, kept as such."""
     import glossrig.core.diagnose.catalogue as catalogue
     import glossrig.core.diagnose.frames as frames
     import glossrig.core.diagnose.geometry as geometry
@@ -156,6 +159,29 @@ def trial(k: int, work: Path, a, null: Path, fit: Path, ref) -> dict:
     from glossrig.core.errors import InputError
 
     catalogue.MAX_BRDF_ROWS, frames.MAX_PIXELS, geometry.FIT_ROWS = ROWS, PIXELS, FIT_ROWS
+    try:
+        return diagnose(cap, a.reference, a.camera, a.lamps, out, fit=fit, log=lambda *x: None,
+                        reference_measured=ref, plots=False)
+    except InputError as e:
+        return {"verdict": "refused", "causes": [], "error": str(e)}
+
+
+def null_capture(j: int, work: Path, a, fit: Path, ref) -> dict:
+    """Independent null capture j (seed NULL_SEED + j, no trial's seed): the null spread of
+    every cause's gain and fitted magnitude, measured apart from the trials."""
+    cap = work / f"n{j:02d}"
+    t0 = time.time()
+    code = {"capture": code_version(), "diagnose": a.diagnose_code}
+    simulate(cap, NULL_SEED + j)
+    rep = run_diagnose(cap, work / f"n{j:02d}_report", a, fit, ref)
+    for f in cap.glob("*.dng"):
+        f.unlink()
+    return {"null": j, "seed": NULL_SEED + j, "verdict": rep["verdict"], "time_s": time.time() - t0, "code": code,
+            "causes": {c["name"]: {"gain": c["gain"], "magnitude": c["magnitude"], "significant": c["significant"],
+                                   "threshold": c["threshold"]} for c in rep["causes"]}}
+
+
+def trial(k: int, work: Path, a, null: Path, fit: Path, ref) -> dict:
     rng = np.random.default_rng([2026, k])
     names = list(CAUSES)
     cause = names[k % len(names)]
@@ -174,11 +200,7 @@ def trial(k: int, work: Path, a, null: Path, fit: Path, ref) -> dict:
         rewrite_capture(null, cap, cause, value)
     else:
         simulate(cap, 1000 + k, f"{cause}={value:.6g}" if cause != "none" else None)
-    try:
-        rep = diagnose(cap, a.reference, a.camera, a.lamps, work / f"t{k:03d}_report", fit=fit,
-                       log=lambda *x: None, reference_measured=ref, plots=False)
-    except InputError as e:       # the pipeline refuses the capture: a failed trial, kept as such
-        rep = {"verdict": "refused", "causes": [], "error": str(e)}
+    rep = run_diagnose(cap, work / f"t{k:03d}_report", a, fit, ref)
     c = next((c for c in rep["causes"] if c["name"] == cause), None)
     res = {"trial": k, "truth": cause, "value": value, "true_magnitude": true_magnitude(cause, value, cap),
            "verdict": rep["verdict"], "estimate": c["magnitude"] if c else None,
@@ -207,13 +229,16 @@ def gain_table(trials: list[dict], work: Path | None) -> list[str]:
         if t["truth"] != "none" and (work / f"t{t['trial']:03d}").exists():
             t["true_magnitude"] = true_magnitude(t["truth"], t["value"], work / f"t{t['trial']:03d}")
     nulls = [reps[t["trial"]] for t in trials if t["truth"] == "none" and t["trial"] in reps]
+    ind = json.loads((work / "nulls.json").read_text()) if (work / "nulls.json").exists() else []
     L = ["", "## Gains: null spread against the hidden cause", "",
-         "Held-out relative gain of each cause's model on the null captures (max) and on the trials that hide "
+         "Held-out relative gain of each cause's model on the null captures (max; the study's null trials and, "
+         f"apart, {len(ind)} independent null captures of seeds {NULL_SEED}+) and on the trials that hide "
          "it (min / median / max), with its significance threshold (space threshold + penalty x extra "
-         "parameters) and how often it was significant when hidden.", "",
-         "| cause | threshold | null max | hidden min | hidden median | hidden max | significant when hidden "
-         "| magnitude error median (max) |",
-         "|---|---|---|---|---|---|---|---|"]
+         "parameters) and how often it was significant when hidden; the magnitude each cause's model fits on "
+         "the independent nulls (mean +- sd: what it reads where nothing is hidden).", "",
+         "| cause | threshold | null max | independent null max | hidden min | hidden median | hidden max "
+         "| significant when hidden | magnitude error median (max) | magnitude on nulls |",
+         "|---|---|---|---|---|---|---|---|---|---|"]
     for name in [n for n in CAUSES if n != "none"]:
         hid = [reps[t["trial"]][name] for t in trials if t["truth"] == name and t["trial"] in reps
                and name in reps[t["trial"]]]
@@ -226,8 +251,17 @@ def gain_table(trials: list[dict], work: Path | None) -> list[str]:
                if t["truth"] == name and t["estimate"] is not None and t["true_magnitude"]]
         merr = f"{float(np.median(rel)):.1%} ({max(rel):.1%})" if rel else "-"
         nmax = f"{max(nul):.3%}" if nul else "-"
-        L.append(f"| {name} | {thr:.3%} | {nmax} | {min(g):.3%} | {float(np.median(g)):.3%} | {max(g):.3%} | "
-                 f"{sum(c['significant'] for c in hid)}/{len(hid)} | {merr} |")
+        ig = [n["causes"][name]["gain"] for n in ind if name in n["causes"]]
+        imax = f"{max(ig):.3%}" if ig else "-"
+        im = [n["causes"][name]["magnitude"] for n in ind if name in n["causes"]]
+        im = [x for x in im if isinstance(x, (int, float))]
+        imag = f"{np.mean(im):.3g} +- {np.std(im, ddof=1):.2g}" if len(im) > 1 else "-"
+        L.append(f"| {name} | {thr:.3%} | {nmax} | {imax} | {min(g):.3%} | {float(np.median(g)):.3%} | {max(g):.3%} | "
+                 f"{sum(c['significant'] for c in hid)}/{len(hid)} | {merr} | {imag} |")
+    if ind:
+        fa = [n for n in ind if n["verdict"] != "none"]
+        L += ["", f"Independent null captures: {len(fa)} of {len(ind)} gave a cause ("
+              + (", ".join(f"seed {n['seed']}: {n['verdict']}" for n in fa) or "all 'none'") + ")."]
     return L
 
 
@@ -289,6 +323,7 @@ def main(argv=None):
     ap.add_argument("--camera", help="camera.json of the nominal rig at scale 0.25 (default: the study's own)")
     ap.add_argument("--lamps", help="lamps.json of the same calibration")
     ap.add_argument("--reference", help="lambert:0.8 reference capture (LEDs 6 and 9 at rotation 0 or a superset)")
+    ap.add_argument("--nulls", type=int, default=6, help="independent null captures after the trials")
     ap.add_argument("--summary-only", action="store_true", help="rewrite the Markdown from WORK/trials.json")
     a = ap.parse_args(argv)
     work = Path(a.work)
@@ -316,6 +351,14 @@ def main(argv=None):
             store.write_text(json.dumps(done, indent=1))
             OUT.write_text(summarise(done, work))
             print(json.dumps(done[-1]), flush=True)
+        nstore = work / "nulls.json"
+        nulls = json.loads(nstore.read_text()) if nstore.exists() else []
+        for j in range(a.nulls):
+            if j in {n["null"] for n in nulls}:
+                continue
+            nulls.append(null_capture(j, work, a, fit, ref))
+            nstore.write_text(json.dumps(nulls, indent=1))
+            print(json.dumps({k: v for k, v in nulls[-1].items() if k != "causes"}), flush=True)
     OUT.write_text(summarise(done, work))
 
 
