@@ -57,8 +57,9 @@ longer exposure gains more for less).
    eq. 4.32-4.38, method "robust") from the predicted values of each sequence
    (:func:`neighbour_links`): the same centre-out chain, the same choice of the
    third image q and of the pixels (q, a and b unsaturated, a and b inside
-   :data:`~glossrig.core.hdr.NEIGHBOUR_WINDOW`), the same fallback to earlier
-   anchored images and the same :data:`~glossrig.core.hdr.NEIGHBOUR_MIN_PIXELS`,
+   :data:`~glossrig.core.hdr.NEIGHBOUR_WINDOW`), the same fallbacks (the other
+   q, the pair alone, earlier anchored images) and the same
+   :data:`~glossrig.core.hdr.NEIGHBOUR_MIN_PIXELS`,
    counted at the capture's resolution (``pixel_factor``). A linked frame carries
    the reference frame's gain, up to the shot noise of the ratio its link rests
    on (accumulated along the chain); patch normalisation (eq. 4.45-4.50) divides
@@ -200,11 +201,11 @@ def neighbour_links(times: Sequence[float], hi: np.ndarray, lo: np.ndarray, coun
         for c in range(a, ref - step, -step):
             if not linked[c]:
                 continue
-            q = next((k for k in (c - step, b + step) if 0 <= k < n and k not in (c, b)), None)
-            sel = unsat[c] & unsat[b] & window[c] & window[b]
-            if q is not None:
-                sel &= unsat[q]
-            if count[sel].sum() * pixel_factor >= min_pixels:
+            pair = unsat[c] & unsat[b] & window[c] & window[b]
+            qs = [k for k in (c - step, b + step) if 0 <= k < n and k not in (c, b)]
+            sel = next((x for x in [pair & unsat[q] for q in qs] + [pair]
+                        if count[x].sum() * pixel_factor >= min_pixels), None)
+            if sel is not None:
                 linked[b] = True
                 chain[b] = chain[c] + rel_var(sel, T[b]) + rel_var(sel, T[c])
                 break

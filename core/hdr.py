@@ -329,10 +329,28 @@ def _gain_ratio(out: np.ndarray, sat: np.ndarray, t: np.ndarray, a: int, b: int,
     ratio is more than 6 robust sigmas (1.4826 MAD) from the median ratio
     (hot pixels, a moving highlight): a mean of ratios is biased by
     E[1/x] > 1/E[x], a median of ratios by the ratio's skew.
+
+    q is the image beyond a (towards the reference), else beyond b. When it
+    leaves fewer than ``min_pixels`` - in a sparse exposure plan the longer
+    neighbour saturates where the pair is well exposed (more than ~3x apart on
+    both sides, :mod:`glossrig.core.exposure_plan`) - the other one is tried,
+    and then the pair's own values: a link with that ~0.02 % bias instead of
+    an image left with the LED's full frame-to-frame jitter (0.5 %).
     """
     n = out.shape[0]
-    q = next((k for k in (a - step, b + step) if 0 <= k < n and k not in (a, b)), None)
-    if q is None:                                   # two-image sequence: no third image to choose with
+    cnt_max = 0
+    for q in [k for k in (a - step, b + step) if 0 <= k < n and k not in (a, b)] + [None]:
+        fac, cnt = _gain_ratio_with(out, sat, t, a, b, q, lo, hi, min_pixels)
+        if fac is not None:
+            return fac, cnt
+        cnt_max = max(cnt_max, cnt)
+    return None, cnt_max
+
+
+def _gain_ratio_with(out, sat, t, a: int, b: int, q: int | None, lo: float, hi: float,
+                     min_pixels: int) -> tuple[float | None, int]:
+    """:func:`_gain_ratio` with pixels chosen by third image ``q`` (None: by the pair itself)."""
+    if q is None:
         pa, pb, usable = out[a], out[b], ~sat[a] & ~sat[b]
     else:
         pa = out[q] * np.float32(t[a] / t[q])
@@ -403,7 +421,9 @@ def neighbour_correct(images, exposure_s, *, clipped=None, method: str = "robust
       (hot pixels, a highlight at a clipping edge), not the mean of
       SI_a / SI_b (eq. 4.35), which is biased by E[1/x] > 1/E[x]; a plain
       median of ratios is biased by the ratio distribution's skew;
-    * with fewer than ``min_pixels`` (100, as in the thesis) such pixels,
+    * when the third image leaves fewer than ``min_pixels`` (100, as in the
+      thesis) such pixels, the third image on the other side and then the
+      pair's own values choose them (:func:`_gain_ratio`); with still too few,
       b is compared with the next already corrected image towards the
       reference instead; if none has enough overlap b is left uncorrected
       and listed in ``report.skipped``. (The thesis skips the pair and
