@@ -902,9 +902,11 @@ def optimise(rig, n_leds: int, materials, runner, space: SearchSpace = SearchSpa
 # ----------------------------------------------------------------------------
 
 def design_errors(rig, materials, rotations=None, led_ids=None, scale: float = 0.25, noise: str = "hdr",
-                  fisher_rows: int = 20000) -> dict[str, fi.ExpectedError]:
+                  fisher_rows: int = 20000, gain_rel: float = 0.0) -> dict[str, fi.ExpectedError]:
     """Expected standard errors (Fisher information, :mod:`glossrig.core.fisher`)
-    of each material for a rig's LEDs and rotations, at image ``scale``."""
+    of each material for a rig's LEDs and rotations, at image ``scale``;
+    ``gain_rel`` > 0: each (LED, rotation) sequence has an unknown residual gain of
+    that relative standard deviation (:func:`~glossrig.core.fisher.gain_marginal_information`)."""
     rotations = [float(r) for r in (rig.sample_rotations if rotations is None else rotations)]
     led_ids = list(rig.led_ids() if led_ids is None else led_ids)
     px = cov.pixel_geometry(rig, scale)
@@ -920,7 +922,7 @@ def design_errors(rig, materials, rotations=None, led_ids=None, scale: float = 0
                                         np.radians(a["theta_h"][rows]),
                                         np.radians(np.mod(a["phi_h"][rows] - r, 360.0)), p)
                 sigma = nm.sigma(f, a["cos_in"][rows], a["dist_in"][rows])
-                info[lb] += fi.information(J, sigma, w)
+                info[lb] += fi.gain_marginal_information(J, sigma, f, gain_rel, w)
                 nrows[lb] += int(round(w.sum()))
     return {lb: fi.summarise(p, fi.covariance_from_information(info[lb], fi.identifiable(p)), nrows[lb])
             for lb, p in materials}

@@ -142,6 +142,7 @@ class LedExposures:
     gain_noise_worst: float = math.nan        # worst predicted frame-gain error (requirement 3) of the plan
     gain_noise_worst_full: float = math.nan   # the same with the full table, one sequence
     unlinked_frames: int = 0                  # planned frames neighbour correction leaves uncorrected (all rotations)
+    gain_noise_rms: float = math.nan          # pixel-weighted RMS of the plan's frame-gain error
 
     def to_json(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -286,8 +287,10 @@ def plan_led(rates, table: Sequence[float], noise: HdrNoise, target: float, marg
             seq_bins.append((h, l, c, inf_, m, np.maximum(gain_target, tail * g_full), g_full))
 
     def gain_check(idx, stop: bool = True):
-        """(requirement 3 met, worst gain error, worst of the full table, unlinked frames used by a pixel)."""
+        """(requirement 3 met, worst gain error, worst of the full table, unlinked frames used by a pixel,
+        pixel-weighted RMS gain error)."""
         ok, worst, worst_full, unl = True, 0.0, 0.0, 0
+        sq, npx = 0.0, 0.0
         t = T[idx]
         for h, l, c, inf_, m, bound, g_full in seq_bins:
             linked, chain = neighbour_links(t, h, l, c, noise, pixel_factor)
@@ -299,7 +302,9 @@ def plan_led(rates, table: Sequence[float], noise: HdrNoise, target: float, marg
             worst = max(worst, float(np.max(g[meas], initial=0.0)))
             worst_full = max(worst_full, float(np.max(g_full[m], initial=0.0)))
             unl += int(np.count_nonzero(~linked & (inf_[idx].sum(axis=1) > 0)))
-        return ok, worst, worst_full, unl
+            sq += float(np.sum(c[meas] * g[meas] ** 2))
+            npx += float(np.sum(c[meas]))
+        return ok, worst, worst_full, unl, math.sqrt(sq / npx) if npx > 0 else math.nan
 
     # Shot noise alone gives info <= t / rate per usable exposure, so any feasible
     # subset exposes for at least max(need * rate) seconds: a bound that stops the
@@ -353,8 +358,9 @@ def plan_led(rates, table: Sequence[float], noise: HdrNoise, target: float, marg
         "unmeasured_fraction_full": float(count[~measurable].sum() / n),
     }
     if seq_bins:
-        _, worst, worst_full, unl = gain_check(best, stop=False)
-        stats.update(gain_noise_worst=worst, gain_noise_worst_full=worst_full, unlinked_frames=unl)
+        _, worst, worst_full, unl, rms = gain_check(best, stop=False)
+        stats.update(gain_noise_worst=worst, gain_noise_worst_full=worst_full, unlinked_frames=unl,
+                     gain_noise_rms=rms)
     return chosen, stats
 
 

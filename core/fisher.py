@@ -35,7 +35,9 @@ Noise models (the choice is the caller's; the design tools default to ``hdr``):
 Assumptions stated once: samples (pixels) are independent, so standard errors
 scale as 1/sqrt(number of pixels), i.e. as 1/scale with the image scale; the
 LED fluctuation is common to a whole frame in reality, so these are lower
-bounds; the peak clipping of thesis eq. 6.5 is not modelled. Relative errors
+bounds unless the residual gain of each sequence is given as a nuisance
+parameter (:func:`gain_marginal_information`, ``design_errors(gain_rel=...)``,
+``hdr:0`` then leaves the per-pixel term out); the peak clipping of thesis eq. 6.5 is not modelled. Relative errors
 are ``sigma_p / p`` for rho_d, rho_s, alpha_x, alpha_y and ``sigma`` in radians
 for the lobe rotation, which is not identifiable for an isotropic lobe and is
 then left out.
@@ -221,6 +223,39 @@ def information(J: np.ndarray, sigma: np.ndarray, weight: np.ndarray | None = No
     # einsum, not BLAS: the same bits whatever the thread count (a design sweep
     # must give the same answer on one process and on a cluster).
     return np.einsum("ni,nj->ij", J * w[:, None], J)
+
+
+def gain_marginal_information(J: np.ndarray, sigma: np.ndarray, f: np.ndarray, gain_rel: float,
+                              weight: np.ndarray | None = None) -> np.ndarray:
+    """Information about the Ward parameters from one exposure sequence (one LED at one
+    sample rotation) whose values share one unknown relative gain.
+
+    The LED's output varies from frame to frame (thesis 4.3.3, fig. 4.12); neighbour
+    correction (eq. 4.32-4.38) ties a sequence's frames to one of them and patch
+    normalisation (eq. 4.45-4.50) divides that one out, up to a residual gain g
+    common to every pixel of the sequence: y_i = (1 + g) f_i + e_i,
+    g ~ N(0, ``gain_rel``^2), e_i ~ N(0, sigma_i^2) independent. With g as a nuisance
+    parameter (equivalently, the correlated covariance diag(sigma^2) + gain_rel^2 f f^T,
+    by Woodbury) the information about theta is the Schur complement
+
+        I = sum J^T J / sigma^2 - b b^T / (c + 1 / gain_rel^2),
+        b = sum J f / sigma^2,  c = sum f^2 / sigma^2.
+
+    Unlike the per-pixel term of :class:`HdrNoise` (``led_rel``), it does not
+    shrink with the number of pixels. ``gain_rel`` = 0 gives :func:`information`."""
+    A = information(J, sigma, weight)
+    if not (math.isfinite(gain_rel) and gain_rel >= 0):
+        raise InputError(f"gain error must be >= 0, got {gain_rel!r}")
+    if gain_rel == 0:
+        return A
+    s = np.asarray(sigma, float)
+    w = np.where(np.isfinite(s) & (s > 0), 1.0 / np.where(s > 0, s, 1.0) ** 2, 0.0)
+    if weight is not None:
+        w = w * np.asarray(weight, float)
+    f = np.asarray(f, float)
+    b = np.einsum("n,ni->i", w * f, np.asarray(J, float))
+    c = float(np.einsum("n,n->", w * f, f))
+    return A - np.outer(b, b) / (c + 1.0 / gain_rel ** 2)
 
 
 def sandwich_parts(J: np.ndarray, sigma: np.ndarray, w: np.ndarray, weight: np.ndarray | None = None):

@@ -340,3 +340,33 @@ def test_cli_optimise_bad_input(tmp_path, capsys):
     assert main(base + ["--leds", "4", "--materials", "reference_paper"]) == 2
     assert main(base + ["--leds", "4", "--rotation-step", "7"]) == 2
     assert "divide 360" in capsys.readouterr().err
+
+
+def test_sequence_gain_nuisance_equals_the_correlated_covariance_and_does_not_average_out():
+    """gain_marginal_information is J^T (diag(sigma^2) + g^2 f f^T)^-1 J (Woodbury), and
+    with it rho_d's relative error of a sequence levels off at the gain error instead of
+    falling as 1/sqrt(pixels)."""
+    from glossrig.core import fisher as fi
+    from glossrig.core.ward import WardParams
+
+    rng = np.random.default_rng(4)
+    p = WardParams(0.05, 0.007, 0.06, 0.034, 2.47)
+    n = 300
+    ti, to = rng.uniform(0.1, 1.2, n), rng.uniform(0.1, 1.2, n)
+    th, ph = rng.uniform(0, 0.4, n), rng.uniform(0, 2 * np.pi, n)
+    f, J = fi.ward_jacobian(ti, to, th, ph, p)
+    sigma = 0.01 * f
+    g = 0.004
+    direct = J.T @ np.linalg.solve(np.diag(sigma ** 2) + g * g * np.outer(f, f), J)
+    np.testing.assert_allclose(fi.gain_marginal_information(J, sigma, f, g), direct, rtol=1e-6, atol=1e-9 * direct.max())
+    np.testing.assert_array_equal(fi.gain_marginal_information(J, sigma, f, 0.0), fi.information(J, sigma))
+    # a Lambertian-only parameter: rho_d's error from N pixels of one sequence
+    Jd = np.full((1, 1), 1 / np.pi)                          # f = rho_d / pi, one row standing for npx pixels
+    fd = np.array([0.05 / np.pi])
+    for npx in (1e3, 1e6):
+        w = np.array([npx])
+        I0 = fi.information(Jd, 0.01 * fd, w)[0, 0]
+        Ig = fi.gain_marginal_information(Jd, 0.01 * fd, fd, g, w)[0, 0]
+        rel0, relg = 1 / np.sqrt(I0) / 0.05, 1 / np.sqrt(Ig) / 0.05
+        assert rel0 == pytest.approx(0.01 / np.sqrt(npx))
+        assert relg == pytest.approx(np.hypot(g, rel0), rel=1e-6)

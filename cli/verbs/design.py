@@ -574,6 +574,10 @@ def add_errors_arguments(p) -> None:
     p.add_argument("--rotations", default=None, help="sample rotations, degrees (default: the rig's)")
     p.add_argument("--scale", type=float, default=0.25, help="image scale the pixels are counted at (default 0.25)")
     p.add_argument("--noise", default="hdr", help="hdr[:LED_REL] (default) or relative[:REL]")
+    p.add_argument("--gain-noise", type=float, default=0.0,
+                   help="residual LED gain per (LED, rotation) sequence after neighbour correction and patch "
+                        "normalisation, relative standard deviation, a nuisance parameter common to the "
+                        "sequence's pixels (default 0: none; use with --noise hdr:0)")
     p.add_argument("--out", default=None, help="JSON file to write (default: print)")
 
 
@@ -585,8 +589,10 @@ def run_errors(args) -> int:
     materials = D.parse_materials(args.materials)
     leds = rig.select_leds(args.leds)
     rots = _floats(args.rotations, "--rotations") if args.rotations else list(rig.sample_rotations)
-    errs = D.design_errors(rig, materials, rotations=rots, led_ids=leds, scale=args.scale, noise=args.noise)
+    errs = D.design_errors(rig, materials, rotations=rots, led_ids=leds, scale=args.scale, noise=args.noise,
+                           gain_rel=args.gain_noise)
     doc = {"rig": str(rig.path), "leds": leds, "rotations_deg": rots, "scale": args.scale, "noise": args.noise,
+           "gain_noise": args.gain_noise,
            "method": "Fisher information (Cramer-Rao bound), glossrig.core.fisher",
            "expected_errors": {lb: e.to_json() for lb, e in errs.items()}}
     text = json.dumps(doc, indent=2) + "\n"

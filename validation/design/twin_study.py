@@ -137,10 +137,17 @@ def capture_minutes(capture: Path) -> float:
 
 
 def save(work: Path, key: str, entry) -> None:
+    """Add one entry to work/results.json (under a lock: `exposures` and `rigs` may run at once)."""
+    import fcntl
+
     p = work / "results.json"
-    d = json.loads(p.read_text()) if p.exists() else {}
-    d[key] = entry
-    p.write_text(json.dumps(d, indent=1))
+    with open(work / "results.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        d = json.loads(p.read_text()) if p.exists() else {}
+        d[key] = entry
+        tmp = p.with_suffix(".tmp")
+        tmp.write_text(json.dumps(d, indent=1))
+        tmp.replace(p)
 
 
 def run_exposures(a) -> None:
@@ -177,14 +184,23 @@ def run_rigs(a) -> None:
             for name, (rig, leds, rots, work) in setup.items():
                 ref, _ = planned_capture(work / "reference", rig, "lambert:0.8", leds, rots, a.scale, REF_SEED)
                 cam, lamps = truth_calibration(ref, work)
+                cap, rep = planned_capture(work / f"{m}_s{s}", rig, m, leds, rots, a.scale, s)
+                res = try_extract_fit(cap, ref, cam, lamps)
+                res["minutes"] = capture_minutes(cap)
                 fisher = work / f"{m}.fisher.json"
                 if not fisher.exists():
                     glossrig("design", "errors", "--rig", rig, "--materials", m, "--leds", leds, "--scale", a.scale,
                              "--out", fisher)
-                cap, rep = planned_capture(work / f"{m}_s{s}", rig, m, leds, rots, a.scale, s)
-                res = try_extract_fit(cap, ref, cam, lamps)
-                res["minutes"] = capture_minutes(cap)
                 res["fisher_relative"] = json.loads(fisher.read_text())["expected_errors"][m]["relative"]
+                # the same with each sequence's residual LED gain as a nuisance parameter, of the size the
+                # exposure planner predicts for this plan (RMS over LEDs of its pixel-weighted RMS)
+                g = math.sqrt(np.mean([e["gain_noise_rms"] ** 2 for e in rep["leds"]]))
+                fisher_g = work / f"{m}_s{s}.fisher_gain.json"
+                if not fisher_g.exists():
+                    glossrig("design", "errors", "--rig", rig, "--materials", m, "--leds", leds, "--scale", a.scale,
+                             "--noise", "hdr:0", "--gain-noise", g, "--out", fisher_g)
+                res["gain_noise"] = g
+                res["fisher_gain_relative"] = json.loads(fisher_g.read_text())["expected_errors"][m]["relative"]
                 save(Path(a.work), f"rigs/{name}/{m}/{s}", res)
                 print(f"[twin_study] rigs {name} {m} seed {s} done", flush=True)
 
