@@ -100,6 +100,8 @@ TAIL = 2.0
 THESIS_JITTER = 0.005
 #: Default target of the gain error common to a frame's pixels (requirement 3).
 GAIN_TARGET = 0.001
+#: Where the full table misses the gain target, a plan may have this much more gain error than it.
+GAIN_TAIL = 2.0
 
 
 def material_brdf(material: Material, a: dict, rotation_deg: float) -> np.ndarray:
@@ -229,7 +231,8 @@ def gain_relative(info: np.ndarray, linked: np.ndarray, chain_var: np.ndarray, j
 
 def plan_led(rates, table: Sequence[float], noise: HdrNoise, target: float, margin: float = 1.1,
              overhead_s: float = 0.0, max_shots: int | None = None, tail: float = TAIL, *, jitter: float = 0.0,
-             gain_target: float = GAIN_TARGET, pixel_factor: float = 1.0) -> tuple[tuple[float, ...], dict]:
+             gain_target: float = GAIN_TARGET, gain_tail: float = GAIN_TAIL,
+             pixel_factor: float = 1.0) -> tuple[tuple[float, ...], dict]:
     """The exposure subset of ``table`` of least time (sum of exposures plus
     ``overhead_s`` per shot) that meets the requirements of the module docstring for
     one LED's pixel rates; exact: subsets are enumerated by size until ``k`` shots
@@ -284,7 +287,7 @@ def plan_led(rates, table: Sequence[float], noise: HdrNoise, target: float, marg
             u, inf_ = information(h, l, T)
             m = (u & (l[None, :] * T[:, None] >= floor)).any(axis=0)
             g_full = gain_relative(inf_, *neighbour_links(T, h, l, c, noise, pixel_factor), jitter)
-            seq_bins.append((h, l, c, inf_, m, np.maximum(gain_target, tail * g_full), g_full))
+            seq_bins.append((h, l, c, inf_, m, np.maximum(gain_target, gain_tail * g_full), g_full))
 
     def gain_check(idx, stop: bool = True):
         """(requirement 3 met, worst gain error, worst of the full table, unlinked frames used by a pixel,

@@ -241,16 +241,41 @@ def report(a) -> str:
             lines.append(f"| {which} | " + " | ".join(
                 (f"{rms([v[which]['error'][k] for v in ex.values()]):.2f}" if k == "lobe_rotation_deg" else
                  f"{100 * rms([v[which]['error'][k] for v in ex.values()]):.2f} %") for k in cols) + " |")
+        lines += ["", "Plan minus full plan, paired by material and seed (same renders and LED streams): mean and "
+                  "largest absolute difference, against the seed scatter of the full plan (standard deviation over "
+                  "seeds within a material, pooled over materials) - the random part either plan has:", "",
+                  "| | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+
+        def unit(k, x):
+            return f"{x:.3f}" if k == "lobe_rotation_deg" else f"{100 * x:.3f} %"
+
+        diff = {k: [v["plan"]["error"][k] - v["full"]["error"][k] for v in ex.values()] for k in cols}
+        by_m: dict = {}
+        for key, v in ex.items():
+            by_m.setdefault(key.split("/")[0], []).append(v["full"]["error"])
+        pooled = {}
+        for k in cols:
+            ss = [(len(es) - 1, float(np.var([e[k] for e in es], ddof=1))) for es in by_m.values() if len(es) > 1]
+            pooled[k] = math.sqrt(sum(n * x for n, x in ss) / sum(n for n, _ in ss)) if ss else math.nan
+        lines.append("| mean (plan - full) | " + " | ".join(unit(k, float(np.mean(diff[k]))) for k in cols) + " |")
+        lines.append("| largest abs(plan - full) | " + " | ".join(unit(k, float(np.max(np.abs(diff[k])))) for k in cols)
+                     + " |")
+        lines.append("| seed scatter of the full plan | " + " | ".join(unit(k, pooled[k]) for k in cols) + " |")
         lines.append("")
     rg = {k.split("/", 1)[1]: v for k, v in d.items() if k.startswith("rigs/")}
     if rg:
         lines += ["## Thesis rig (8 middle LEDs) against the optimised 16-LED rig", "",
                   "Per rig and material: RMS over seeds of the recovered errors (Monte Carlo), their scatter "
-                  "between seeds (standard deviation, the random part) and the Fisher prediction (relative "
-                  "standard error, same scale).", "",
+                  "between seeds (standard deviation, the random part) and the Fisher predictions (relative "
+                  "standard error, same scale): `indep.` with independent pixels (sensor noise + 1 % LED "
+                  "fluctuation per pixel, `glossrig design errors`), `gain` with sensor noise per pixel and one "
+                  "residual LED gain per (LED, rotation) sequence as a nuisance parameter (`--noise hdr:0 "
+                  "--gain-noise G`, G the exposure planner's predicted RMS frame-gain error of the capture's plan).",
+                  "",
                   "| rig | material | seeds | capture (min) | " + " | ".join(cols) + " | scatter " +
-                  " | scatter ".join(PARAMS) + " | Fisher " + " | Fisher ".join(PARAMS) + " |",
-                  "|---|---|---|---|" + "---|" * (len(cols) + 2 * len(PARAMS))]
+                  " | scatter ".join(PARAMS) + " | indep. " + " | indep. ".join(PARAMS) + " | G | gain " +
+                  " | gain ".join(PARAMS) + " |",
+                  "|---|---|---|---|" + "---|" * (len(cols) + 3 * len(PARAMS) + 1)]
         groups: dict = {}
         failed = [k for k, v in rg.items() if "error" not in v]
         for key, v in rg.items():
@@ -261,6 +286,11 @@ def report(a) -> str:
             errs = " | ".join((f"{rms([v['error'][k] for v in vs]):.2f}" if k == "lobe_rotation_deg"
                                else f"{100 * rms([v['error'][k] for v in vs]):.2f} %") for k in cols)
             fis = " | ".join(f"{100 * vs[0]['fisher_relative'][k]:.3f} %" for k in PARAMS)
+            if all("fisher_gain_relative" in v for v in vs):
+                fis += f" | {100 * rms([v['gain_noise'] for v in vs]):.3f} % | " + " | ".join(
+                    f"{100 * rms([v['fisher_gain_relative'][k] for v in vs]):.3f} %" for k in PARAMS)
+            else:
+                fis += " | - |" + " - |" * (len(PARAMS) - 1) + " -"
             sc = " | ".join((f"{100 * np.std([v['error'][k] for v in vs], ddof=1):.3f} %" if len(vs) > 1 else "-")
                             for k in PARAMS)
             lines.append(f"| {rig} | {m} | {len(vs)} | {np.mean([v['minutes'] for v in vs]):.1f} | {errs} | {sc} | "
