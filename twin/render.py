@@ -11,20 +11,26 @@ enters only here.
 
 Image formation: a sensor pixel integrates the irradiance over its area, so an
 output pixel is the mean of the pinhole image over the pixel's footprint (its
-square mapped through the inverse lens model). :meth:`LensMap.apply`
-approximates that area integral by an ``n x n`` grid of sub-pixel positions
-(mapped through the local Jacobian of the lens map) read bilinearly from a
-canvas rendered ``s`` times finer (box filter, i.e. fine-pixel area means).
-Reading one bilinear sample per output pixel from a canvas at the output
-resolution - the previous scheme - blurs by the interpolation kernel with a
-sub-pixel phase that is nearly constant along an edge running along a pixel
-row or column, which moves such edges by up to 0.067 px at scale 0.25; with
-s = n = 2 the largest shift is 0.013 px (``tests/test_twin_lens.py``: exact
-area-coverage canvases near the image corners at four sub-pixel phases, fitted
-with the pose refinement's edge model). The sample budget is kept: the canvas
-gets ``ceil(spp / s^2)`` samples per fine pixel (:meth:`LensMap.canvas_spp`);
-the 4x larger film and the four reads cost ~2.3x the CPU time of a render
-(1.1 s instead of 0.5 s per LED at scale 0.25).
+square mapped through the inverse lens model). The canvas is rendered ``s``
+times finer than the output (box filter: each fine pixel is an area mean) and
+:meth:`LensMap.area_mean` integrates it exactly over each footprint. What is left
+is the canvas's own discretisation: a fine pixel cut by an edge is spread
+uniformly over its area, so an output pixel whose footprint boundary cuts that
+fine pixel sees the edge displaced by a fraction of a fine pixel, depending on
+the sub-pixel phase of the edge in the canvas grid. Along an edge that runs
+along a pixel row or column - the holder marker's, on the nominal rig - the
+phase is the same everywhere, so the displacements add up instead of averaging
+out. Measured on the holder marker imaged exactly (analytic fine-pixel coverage,
+no noise) through this lens map and fitted by the pose refinement, scale 0.25:
+holder tilt 0.073 deg with s = 2, 0.024 deg with s = 4 (0.15: 0.063 / 0.013 deg);
+the Monte Carlo coverage noise on the edges shrinks with the number of fine
+pixels per output pixel as well (the twin's calibration image at scale 0.15,
+sensor noise off: 0.27 deg with s = 2, 0.027 deg with s = 4) - see
+validation/calibration_report.md. Hence s = 4 by default (within
+:attr:`LensMap.MAX_CANVAS_MP`). The canvas gets ``ceil(spp / s^2)`` samples per
+fine pixel (:meth:`LensMap.canvas_spp`), at least one: with s = 4 and the default
+spp = 4 an output pixel gets 16 samples. Cost at scale 0.25: ~3x the CPU time of
+s = 2 per LED render and 3.5 GB instead of 1.2 GB peak memory.
 """
 from __future__ import annotations
 
@@ -49,12 +55,13 @@ class LensMap:
     supersample: int = 1               # canvas pixels per output pixel (each axis)
     jac: np.ndarray | None = None      # (4, h, w) d(map_x, map_y)/d(u, v) of the lens map
 
-    #: Default canvas supersampling (and sub-pixel grid) - see tests/test_twin_lens.py.
-    DEFAULT_SUPERSAMPLE = 2
-    #: Largest supersampled canvas (megapixels) the default allows; beyond it (scale > ~0.6)
-    #: the twin falls back to one bilinear read: a 2x canvas at full resolution (~100 MP)
-    #: more than doubles the render's memory (measured 0.42 -> 0.93 GB at scale 0.25).
-    MAX_CANVAS_MP = 40.0
+    #: Default canvas supersampling - see the module docstring and tests/test_twin_lens.py.
+    DEFAULT_SUPERSAMPLE = 4
+    #: Largest supersampled canvas (megapixels) the default allows; beyond it the twin steps
+    #: down to s = 3, 2 and finally one bilinear read (s = 1): s = 4 up to scale ~0.25
+    #: (24 MP canvas, 3.5 GB peak), s = 2 up to ~0.5, a full-resolution canvas (~24 MP) at
+    #: scale 1.
+    MAX_CANVAS_MP = 25.0
 
     @classmethod
     def build(cls, camera, scale: float, margin_px: int = 3, supersample: int | None = None) -> "LensMap":
@@ -110,27 +117,67 @@ class LensMap:
         """Resample a pinhole canvas image into the distorted output image.
 
         ``nearest``: the canvas value at each output pixel's centre ray (for data that
-        must not be mixed, e.g. surface positions); otherwise the pixel-area mean, from
-        ``s x s`` sub-pixel positions read bilinearly (see the module docstring)."""
+        must not be mixed, e.g. surface positions); otherwise, with a supersampled canvas,
+        the exact mean of the (piecewise constant) canvas over each output pixel's
+        footprint (:meth:`area_mean`), and without supersampling one bilinear read."""
         src = np.ascontiguousarray(canvas_img)
-        remap = lambda mx, my, interp: cv2.remap(src, mx, my, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         if nearest:
-            return remap(self.map_x, self.map_y, cv2.INTER_NEAREST)
-        n = self.supersample
-        if n == 1:
-            return remap(self.map_x, self.map_y, cv2.INTER_LINEAR)
+            return cv2.remap(src, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                             borderValue=0)
+        if self.supersample == 1:
+            return cv2.remap(src, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                             borderValue=0)
+        return self.area_mean(src)
+
+    def area_mean(self, canvas_img: np.ndarray) -> np.ndarray:
+        """Mean of the canvas over each output pixel's footprint, exactly.
+
+        The footprint of output pixel (u, v) is the rectangle centred on its ray
+        (map_x, map_y) with sides |d map_x / du| x |d map_y / dv| canvas pixels (the lens
+        map's local Jacobian; its off-diagonal terms, a shear below 0.5 % at the image
+        corners, are left out - they do not move the footprint's centroid). The canvas
+        is piecewise constant (box-filtered fine pixels), so the integral over the
+        rectangle is a separable sum over the canvas pixels it overlaps, each weighted
+        by its overlap length along x times along y (3 x 3 canvas pixels for a 2x
+        canvas, 5 x 5 for a 4x one).
+
+        The weights do not depend on the sub-pixel phase between canvas and output grid
+        in the way the former scheme's did (an s x s grid of bilinear reads, whose
+        kernel varied between the pixel square and a 1.5 px trapezoid at s = 2); on the
+        holder pose the two agree (scale 0.15, s = 2: 0.278 vs 0.270 deg noise-free), the
+        error that matters is the canvas's discretisation (module docstring)."""
+        src = np.ascontiguousarray(canvas_img)
+        tx, ty, inv_area = self._footprint_taps()
         out = None
-        offsets = [(k + 0.5) / n - 0.5 for k in range(n)]      # python floats keep the maps float32
-        for dv in offsets:
-            for du in offsets:
-                img = remap(self.map_x + self.jac[0] * du + self.jac[1] * dv,
-                            self.map_y + self.jac[2] * du + self.jac[3] * dv, cv2.INTER_LINEAR)
-                if out is None:
-                    out = img.astype(np.float32)
-                else:
-                    out += img
-        out /= n * n
+        for ky, wy in ty:
+            for kx, wx in tx:
+                w = wx * wy * inv_area
+                if not w.any():
+                    continue
+                # integer positions: INTER_NEAREST is an exact gather; outside the canvas 0
+                g = cv2.remap(src, kx, ky, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                g *= w[..., None] if g.ndim == 3 else w
+                out = g if out is None else out + g
         return out
+
+    def _footprint_taps(self):
+        """Per axis, the canvas pixels (float32 integer positions) each output pixel's
+        footprint overlaps and the overlap lengths; and 1 / footprint area. Cached."""
+        if getattr(self, "_taps", None) is None:
+            def taps(c, half):
+                # canvas pixel k covers [k - 0.5, k + 0.5]; the footprint [c - half, c + half]
+                lo, hi = c - half, c + half
+                k0 = np.floor(lo + 0.5)
+                n = int(np.ceil(2 * half.max())) + 1
+                return [((k0 + m).astype(np.float32),
+                         np.clip(np.minimum(hi, k0 + m + 0.5) - np.maximum(lo, k0 + m - 0.5), 0.0, None)
+                         .astype(np.float32)) for m in range(n)]
+
+            hx = 0.5 * np.abs(self.jac[0].astype(np.float64))
+            hy = 0.5 * np.abs(self.jac[3].astype(np.float64))
+            self._taps = (taps(self.map_x.astype(np.float64), hx), taps(self.map_y.astype(np.float64), hy),
+                          (0.25 / (hx * hy)).astype(np.float32))
+        return self._taps
 
 
 def render_array(scene, spp: int | None = None, seed: int = 0) -> np.ndarray:
