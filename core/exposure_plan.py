@@ -58,7 +58,7 @@ longer exposure gains more for less).
    (:func:`neighbour_links`): the same centre-out chain, the same choice of the
    third image q and of the pixels (q, a and b unsaturated, a and b inside
    :data:`~glossrig.core.hdr.NEIGHBOUR_WINDOW`), the same fallbacks (the other
-   q, the pair alone, earlier anchored images) and the same
+   q, the pair's longer image, earlier anchored images) and the same
    :data:`~glossrig.core.hdr.NEIGHBOUR_MIN_PIXELS`,
    counted at the capture's resolution (``pixel_factor``). A linked frame carries
    the reference frame's gain, up to the shot noise of the ratio its link rests
