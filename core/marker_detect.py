@@ -13,10 +13,13 @@ Thesis steps (eq. 4.6-4.17) and what this module does instead:
   patch does not pass). A marker that cannot be found stops with
   :class:`InputError` naming the file.
 * **HSV threshold (eq. 4.7)** as in the thesis, on the demosaiced linear image
-  after a white balance taken from its brightest unclipped pixels (the white
-  paper parts: holder patch, marker band). The thesis thresholds an
-  un-balanced camera image with hand-set limits; balancing first makes the
-  default limits (:data:`RED_HSV`) hold for any camera and exposure.
+  after a white balance on the holder marker's white patch, read where the
+  rig's nominal geometry puts it (:func:`white_patch_reference`); only if that
+  region is not one uniform unclipped colour, on the image's brightest
+  unclipped pixels (:func:`white_balance`), which a bright coloured sample can
+  outshine. The thesis thresholds an un-balanced camera image with hand-set
+  limits; balancing first makes the default limits (:data:`RED_HSV`) hold for
+  any camera and exposure.
 * **Contours (eq. 4.8-4.10)** by Suzuki's border following (``cv2.findContours``),
   as in the thesis, with the two-level hierarchy that exposes holes.
 * **Corners (eq. 4.11-4.17).** The thesis runs Harris on the filled mask and
@@ -117,15 +120,24 @@ class MarkerDetection:
 
 # ------------------------------------------------------------- colour
 
-def white_balance(rgb: np.ndarray, top_fraction: float = 0.02) -> tuple[np.ndarray, float]:
-    """Per-channel gains making the brightest unclipped pixels neutral, and
-    their level after the gains (the white reference).
+def white_balance(rgb: np.ndarray, top_fraction: float = 0.02,
+                  reference: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Per-channel gains making the white reference neutral, and its level
+    after the gains. Returns (gains (3,), white level).
 
-    The calibration image's brightest non-saturated pixels are the white
-    paper parts (holder patch, marker band, a light sample): the median colour
-    of the top ``top_fraction`` by green value (channels all below 0.98 of
-    the clip level) is taken as white. Returns (gains (3,), white level).
+    ``reference`` is the raw colour of a known white (detection passes the holder
+    marker's white patch, :func:`white_patch_reference`). Without one, the
+    brightest unclipped pixels are taken as white: the median colour of the top
+    ``top_fraction`` by green value (channels all below 0.98 of the clip
+    level) - right when the white paper parts are the brightest surfaces, wrong
+    when a bright coloured sample outshines them (a saturated yellow highlight
+    then sets the "white", and the balanced markers are no longer red).
     """
+    if reference is not None:
+        ref = np.asarray(reference, np.float64).reshape(3)
+        if not np.all(ref > 0):
+            raise InputError(f"white reference must be positive in every channel, got {ref.tolist()}")
+        return (ref[1] / ref).astype(np.float32), float(ref[1])
     a = rgb.reshape(-1, 3)
     ok = np.all(a < 0.98 * float(a.max()), axis=1) & np.all(a > 0, axis=1)
     if ok.sum() < 100:
@@ -137,6 +149,61 @@ def white_balance(rgb: np.ndarray, top_fraction: float = 0.02) -> tuple[np.ndarr
         return np.ones(3, np.float32), float(max(a.max(), 1e-12))
     gains = (ref[1] / ref).astype(np.float32)
     return gains, float(ref[1])
+
+
+#: Part of the white patch (linear size about its centre) read by :func:`white_patch_reference`,
+#: and the largest relative spread (MAD / median per channel) it may show to count as one white.
+WHITE_PATCH_KEEP = 0.5
+WHITE_PATCH_MAX_SPREAD = 0.1
+#: The patch must be at least as bright (green) as this quantile of the whole image.
+WHITE_PATCH_MIN_RANK = 0.8
+#: Largest ratio between the raw channels of a white (the twin's camera: 1.43).
+WHITE_MAX_CHANNEL_RATIO = 4.0
+
+
+def white_patch_reference(rgb: np.ndarray, rig, K: np.ndarray, dist) -> np.ndarray | None:
+    """Raw colour of the holder marker's white patch: the median over the central
+    :data:`WHITE_PATCH_KEEP` of the patch where the rig's nominal camera pose
+    (:meth:`glossrig.core.rig.Camera.pose`) and ``K``/``dist`` put it - the rig's
+    geometry, not a hand-set pixel region; the central half tolerates a pose off by a
+    quarter of the patch (4 mm on the thesis rig). None when that region is not one
+    white: too few pixels, more than 5 % of them clipped or non-positive, a spread
+    above :data:`WHITE_PATCH_MAX_SPREAD` (the region straddles the red frame or
+    something else), a green level below the image's :data:`WHITE_PATCH_MIN_RANK`
+    quantile (a covered patch; twin captures: 0.955 with a saturated yellow sample,
+    0.970 with a white one) or raw channels further apart than
+    :data:`WHITE_MAX_CHANNEL_RATIO` (a coloured cover). A coloured sample cannot pass
+    for it, however bright; without it :func:`white_balance` falls back on the
+    brightest pixels."""
+    from .markers import holder_marker_corners
+
+    R, t = rig.camera.pose()
+    c = holder_marker_corners(rig, inner=True)
+    c = c.mean(axis=0) + WHITE_PATCH_KEEP * (c - c.mean(axis=0))
+    p, _ = cv2.projectPoints(c, cv2.Rodrigues(np.asarray(R, np.float64))[0], np.asarray(t, np.float64), K,
+                             np.asarray(dist, np.float64))
+    poly = np.round(p.reshape(-1, 2)[[0, 1, 3, 2]]).astype(np.int32)        # UL UR LR LL
+    h, w = rgb.shape[:2]
+    if np.any(poly < 0) or np.any(poly[:, 0] >= w) or np.any(poly[:, 1] >= h):
+        return None
+    m = np.zeros((h, w), np.uint8)
+    cv2.fillConvexPoly(m, poly, 1)
+    a = rgb[m > 0].astype(np.float64)
+    if len(a) < 25:
+        return None
+    bad = np.any(a >= 0.98 * float(rgb.max()), axis=1) | np.any(a <= 0, axis=1)
+    if bad.mean() > 0.05:
+        return None
+    a = a[~bad]
+    med = np.median(a, axis=0)
+    mad = np.median(np.abs(a - med), axis=0)
+    if np.any(mad > WHITE_PATCH_MAX_SPREAD * med):
+        return None
+    if med[1] < np.quantile(rgb[::4, ::4, 1], WHITE_PATCH_MIN_RANK):
+        return None
+    if med.max() > WHITE_MAX_CHANNEL_RATIO * med.min():
+        return None
+    return med
 
 
 def red_mask(rgb_balanced: np.ndarray, white: float, hsv: dict | None = None) -> np.ndarray:
@@ -425,7 +492,7 @@ def detect_markers(rgb: np.ndarray, rig, K: np.ndarray, dist, path: str = "<imag
     h, w = rgb.shape[:2]
     if not np.all(np.isfinite(rgb)) or float(rgb.max()) <= 0:
         raise InputError("calibration image is empty (all black) or holds non-finite values", path=path)
-    gains, white = white_balance(rgb)
+    gains, white = white_balance(rgb, reference=white_patch_reference(rgb, rig, K, dist))
     bal = rgb * gains
     mask = red_mask(bal, white, hsv)
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))

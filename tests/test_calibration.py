@@ -485,3 +485,47 @@ def test_edge_refinement_uncertainty_is_honest(rig):
         stds.append(fit["std_rot_deg"])
     rms, sd = np.sqrt(np.mean(np.square(errs), axis=0)), np.mean(stds, axis=0)
     assert np.all(rms < 2 * sd) and np.all(rms > 0.5 * sd), (rms, sd)
+
+
+# ------------------------------------------------------- white reference
+
+def test_white_balance_ignores_a_bright_coloured_sample(sample_capture, true_camera_json, geometry, monkeypatch):
+    """A saturated yellow surface brighter than the white paper (as the RGL
+    vch_golden_yellow sample's highlight, validation/diagnose/rgl_study.py) covering a
+    tenth of the image, away from the markers, with a clipped core: detection white-balances on the holder's
+    white patch and finds the same corners; balancing on the brightest pixels (the
+    fallback) takes the yellow as white and loses the markers."""
+    from glossrig.core import marker_detect as MD
+    from glossrig.core.demosaic import demosaic
+    from glossrig.core.raw import linearize, read_raw
+    from glossrig.core.rig import load_rig
+
+    rig = load_rig(RIG)
+    cam = load_camera(true_camera_json)
+    fr = read_raw(sample_capture / "calibration_rp000.dng")
+    rgb = demosaic(linearize(fr), fr.cfa)
+    h, w = rgb.shape[:2]
+    corners = np.concatenate([geometry["corners_px"]["holder"], geometry["corners_px"]["cylinder"]])
+    # a band of rows free of markers, a tenth of the image
+    band = int(0.1 * h) + 1
+    free = [y for y in range(0, h - band, 4)
+            if not np.any((corners[:, 1] > y - 20) & (corners[:, 1] < y + band + 20))]
+    assert free, "no marker-free band"
+    y0 = free[0]
+    white = MD.white_patch_reference(rgb, rig, cam.K, cam.dist)
+    assert white is not None and white.max() < 1.5 * white.min()
+    painted = rgb.copy()
+    painted[y0:y0 + band] = np.array([0.9, 0.9, 0.03], np.float32)     # unclipped, brighter than the white
+    painted[y0 + band // 2, :8] = 1.0                                   # a clipped highlight core
+    assert 0.9 > 1.5 * white[1]
+    gains, _ = MD.white_balance(painted)
+    assert gains[2] > 10 * gains[0]                                                # the fallback's yellow "white"
+    det0 = MD.detect_markers(rgb, rig, cam.K, cam.dist)
+    det = MD.detect_markers(painted, rig, cam.K, cam.dist)
+    assert np.allclose(det.white_gains, det0.white_gains)
+    for a, b in ((det.holder_image_points(), det0.holder_image_points()),
+                 (det.cylinder_image_points(), det0.cylinder_image_points())):
+        assert np.abs(a - b).max() < 1e-6
+    monkeypatch.setattr(MD, "white_patch_reference", lambda *a, **k: None)
+    with pytest.raises(InputError, match="holder marker not found"):
+        MD.detect_markers(painted, rig, cam.K, cam.dist)
