@@ -132,50 +132,13 @@ def test_area_mean_is_the_exact_footprint_integral(lenses):
         assert np.allclose(out[v, u], ref, atol=1e-5), (v, u, out[v, u], ref)
 
 
-def _exact_holder_mosaic(rig, lens, R, t):
-    """Linear RGGB mosaic of the holder marker (red frame on the dark holder, white patch)
-    imaged through ``lens`` from analytic canvas coverage - no Monte Carlo, no noise. The
-    marker faces the camera squarely on the nominal rig, so its edges are straight lines
-    along canvas rows / columns; each fine pixel's coverage of the patch and of the frame
-    is the product of its coverages along x and y (exact away from the corners, which the
-    pose refinement leaves out)."""
-    from glossrig.core.demosaic import channel_index
-    from glossrig.core.markers import holder_marker_corners
-
-    def canvas_xy(P):
-        X = P @ R.T + t
-        return np.stack([X[:, 0] / X[:, 2] * lens.focal + lens.canvas[0] / 2 - 0.5,
-                         X[:, 1] / X[:, 2] * lens.focal + lens.canvas[1] / 2 - 0.5], -1)
-
-    def box_cov(c, n):
-        lo, hi = c[:, 0].min(), c[:, 0].max()
-        k = np.arange(n)
-        return np.clip(np.minimum(hi, k + 0.5) - np.maximum(lo, k - 0.5), 0, 1)
-
-    img = np.empty((lens.canvas[1], lens.canvas[0], 3), np.float32)
-    # radiances (W m^-2 sr^-1) of the twin's calibration image at the holder (seed 2)
-    bg, red, white = np.array([0.17, 0.21, 0.25]), np.array([2.73, 0.25, 0.29]), np.array([3.9, 4.87, 5.75])
-    cov = []
-    for inner in (False, True):
-        c = canvas_xy(holder_marker_corners(rig, inner=inner))
-        assert all(len(np.unique(np.round(c[:, k], 6))) == 2 for k in (0, 1))    # axis-aligned square
-        cov.append(np.outer(box_cov(c[:, ::-1], lens.canvas[1]), box_cov(c, lens.canvas[0])))
-    img[:] = bg + (red - bg) * cov[0][..., None] + (white - red) * cov[1][..., None]
-    rad = lens.apply(img)
-    from glossrig.twin.sensor import SensorModel
-    from glossrig.core.raw import linearize_mosaic
-
-    S = SensorModel.from_rig(rig)
-    dn = S.expected_dn(rad, rig.calibration_time_s, rig.calibration_iso, rig.calibration_aperture)
-    return linearize_mosaic(dn, S.black_2x2(), S.white_level)
-
-
 def _holder_tilt_on_exact_image(rig, scale: float, ss: int) -> float:
     from glossrig.core import poses as P
+    from glossrig.twin.marker_image import holder_marker_mosaic
 
     lens = LensMap.build(rig.camera, scale, supersample=ss)
     R, t = rig.camera.pose()
-    lin = _exact_holder_mosaic(rig, lens, R, t)
+    lin = holder_marker_mosaic(rig, lens, R, t)
     fit = P.refine_pose_edges(lin, rig.camera.cfa, lens.K, lens.dist, R, t, P.holder_edges(rig)[4:], [8.0] * 4)
     return P.rotation_angle_deg(fit["R"], R)
 
