@@ -18,7 +18,9 @@ sensor_nonlinearity (glossrig.core.diagnose.hide), and whose geometric calibrati
 rewriting; then diagnose runs blind. Budget per trial (2 cores shared by four
 engineers): BRDF rows capped at ``ROWS``, frame pixels at ``PIXELS``, rows of the
 geometry causes' non-linear fits at ``FIT_ROWS``. Resumable: finished trials are kept in
-WORK/trials.json; rerunning continues. Each trial records the commit (and whether
+WORK/trials.json; rerunning continues. After the trials, --nulls independent null captures
+(seeds 5000+, WORK/nulls.json) measure each cause's null spread and null reading apart
+from the trials. Each trial records the commit (and whether
 core/ or twin/ had uncommitted changes) its capture and its diagnosis ran with. Writes
 validation/diagnose/blind_study.md.
 """
@@ -288,7 +290,8 @@ def summarise(trials: list[dict], work: Path | None = None) -> str:
     nulls = [t for t in trials if t["truth"] == "none"]
     fa = np.mean([t["verdict"] != "none" for t in nulls]) if nulls else float("nan")
     L = ["# diagnose blind study", "",
-         "Regenerate (resumable; a trial costs ~1-2 min on one core):", "",
+         "Regenerate everything - calibration, trials, independent null captures, this file (resumable; on the "
+         "shared 2-core machine calibration took ~3 min, a trial 16-62 s, an independent null 2-3 min):", "",
          "    nice -n 5 python validation/diagnose/blind_study.py --work /tmp/blind --trials 55", "",
          f"Set-up: sample_2_6 on the thesis rig, LEDs {LEDS}, rotation 0, scale 0.25, `--ideal`; one nominal "
          "camera/lamp calibration and lambert:0.8 reference for all trials (the study's own, WORK/calibration, unless "
