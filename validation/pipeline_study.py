@@ -49,17 +49,15 @@ def calibrate(out: Path, scale: float, seed: int, lamp_rotations: str = "0", rep
     """Camera and lamp calibration of the nominal rig on the twin, resumable in OUT: 12
     checkerboard views (seed) -> `glossrig calibrate camera` -> OUT/camera.json; a
     transparency-sheet capture of LEDS (seed + 1) -> `glossrig calibrate lamps` (thesis
-    4.3.4) -> OUT/lamps.json."""
-    checker = out / "checker"
-    if not (checker / "capture.json").exists():
-        glossrig("simulate", "--rig", RIG, "--target", "checkerboard", "--views", 12, "--scale", scale,
-                 "--seed", seed, "--no-progress", "--out", checker)
-    cam = out / "camera.json"
+    4.3.4) -> OUT/lamps.json. A camera.json or lamps.json already in OUT is kept."""
+    checker, cam, lamps = out / "checker", out / "camera.json", out / "lamps.json"
     if not cam.exists():
+        if not (checker / "capture.json").exists():
+            glossrig("simulate", "--rig", RIG, "--target", "checkerboard", "--views", 12, "--scale", scale,
+                     "--seed", seed, "--no-progress", "--out", checker)
         glossrig("calibrate", "camera", checker, "--out", cam)
-    spec = simulate(out / "specular", "transparency_sheet", scale, seed + 1, lamp_rotations, repeats, extra, leds)
-    lamps = out / "lamps.json"
     if not lamps.exists():
+        spec = simulate(out / "specular", "transparency_sheet", scale, seed + 1, lamp_rotations, repeats, extra, leds)
         glossrig("calibrate", "lamps", spec, "--camera", cam, "--out", lamps)
     return cam, lamps
 

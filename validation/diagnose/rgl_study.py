@@ -30,7 +30,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "validation"))
-from pipeline_study import RIG, glossrig, simulate  # noqa: E402  (one way to script the chain)
+from pipeline_study import calibrate, simulate  # noqa: E402  (one way to script the chain)
 
 RGL = Path("/work/shared/data/rgl") if not (ROOT.parent / "shared/data/rgl").is_dir() else ROOT.parent / "shared/data/rgl"
 MATERIALS = ("satin_rosaline_rgb", "vch_golden_yellow_rgb", "cc_ibiza_sunset_rgb", "paper_white_rgb")
@@ -38,21 +38,11 @@ REFERENCE = RGL / "paper_white_rgb.bsdf"
 
 
 def calibrations(work: Path, a) -> tuple[Path, Path]:
-    cam, lamps = work / "camera.json", work / "lamps.json"
-    if a.camera and not cam.exists():
-        shutil.copy(a.camera, cam)
-    if a.lamps and not lamps.exists():
-        shutil.copy(a.lamps, lamps)
-    if not cam.exists():
-        checker = work / "checker"
-        if not (checker / "capture.json").exists():
-            glossrig("simulate", "--rig", RIG, "--target", "checkerboard", "--views", 12, "--scale", a.scale,
-                     "--seed", 1, "--no-progress", "--out", checker)
-        glossrig("calibrate", "camera", checker, "--out", cam)
-    if not lamps.exists():
-        spec = simulate(work / "specular", "transparency_sheet", a.scale, 2, "0", 1)
-        glossrig("calibrate", "lamps", spec, "--camera", cam, "--out", lamps)
-    return cam, lamps
+    """The given camera and lamp calibrations (copied into WORK), else pipeline_study's."""
+    for given, name in ((a.camera, "camera.json"), (a.lamps, "lamps.json")):
+        if given and not (work / name).exists():
+            shutil.copy(given, work / name)
+    return calibrate(work, a.scale, 1)
 
 
 def captures(work: Path, a) -> dict:
