@@ -362,7 +362,8 @@ def refine_pose_edges(lin: np.ndarray, cfa, K: np.ndarray, dist, R0: np.ndarray,
     dof = max(1, n - len(sol.x) - 4 * prob.n_groups)
     s2 = float(sol.fun[:n] @ sol.fun[:n]) / dof          # ~1 when the weights match the noise
     try:
-        cov = s2 * np.linalg.inv(sol.jac.T @ sol.jac)
+        # pinv: a blur clipped at its floor (a very sharp edge) has a zero column and drops out
+        cov = s2 * np.linalg.pinv(sol.jac.T @ sol.jac)
         # rvec -> small rotation about the marker's own axes (R = R_est exp([w]x)); the
         # rvec components themselves mean little near 180 degrees
         M = np.empty((3, 3))
