@@ -238,7 +238,8 @@ def edge_offsets_at_truth(capture: Path, rig) -> dict:
             s = least_squares(res, s0.x, args=(w,))
             J = s.jac
             s2 = s.fun @ s.fun / (len(s.fun) - 2)
-            std = float(np.sqrt(np.linalg.inv(J.T @ J)[0, 0] * s2))
+            # pinv: on a sharp edge the blur can sit at its floor, where its column of J vanishes
+            std = float(np.sqrt(np.linalg.pinv(J.T @ J)[0, 0] * s2))
             offs.append({"offset_px": float(s.x[0]), "std_px": std})
         out[name] = offs
     return out
