@@ -242,25 +242,30 @@ def report(a) -> str:
                 (f"{rms([v[which]['error'][k] for v in ex.values()]):.2f}" if k == "lobe_rotation_deg" else
                  f"{100 * rms([v[which]['error'][k] for v in ex.values()]):.2f} %") for k in cols) + " |")
         lines += ["", "Plan minus full plan, paired by material and seed (same renders and LED streams): mean and "
-                  "largest absolute difference, against the seed scatter of the full plan (standard deviation over "
-                  "seeds within a material, pooled over materials) - the random part either plan has:", "",
+                  "largest absolute difference, against the seed scatter of each plan (standard deviation over "
+                  "seeds within a material, pooled over materials: the random part of its errors):", "",
                   "| | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
 
         def unit(k, x):
             return f"{x:.3f}" if k == "lobe_rotation_deg" else f"{100 * x:.3f} %"
 
         diff = {k: [v["plan"]["error"][k] - v["full"]["error"][k] for v in ex.values()] for k in cols}
-        by_m: dict = {}
-        for key, v in ex.items():
-            by_m.setdefault(key.split("/")[0], []).append(v["full"]["error"])
-        pooled = {}
-        for k in cols:
-            ss = [(len(es) - 1, float(np.var([e[k] for e in es], ddof=1))) for es in by_m.values() if len(es) > 1]
-            pooled[k] = math.sqrt(sum(n * x for n, x in ss) / sum(n for n, _ in ss)) if ss else math.nan
+        def pooled_sd(which):
+            by_m: dict = {}
+            for key, v in ex.items():
+                by_m.setdefault(key.split("/")[0], []).append(v[which]["error"])
+            out = {}
+            for k in cols:
+                ss = [(len(es) - 1, float(np.var([e[k] for e in es], ddof=1))) for es in by_m.values() if len(es) > 1]
+                out[k] = math.sqrt(sum(n * x for n, x in ss) / sum(n for n, _ in ss)) if ss else math.nan
+            return out
+
         lines.append("| mean (plan - full) | " + " | ".join(unit(k, float(np.mean(diff[k]))) for k in cols) + " |")
         lines.append("| largest abs(plan - full) | " + " | ".join(unit(k, float(np.max(np.abs(diff[k])))) for k in cols)
                      + " |")
-        lines.append("| seed scatter of the full plan | " + " | ".join(unit(k, pooled[k]) for k in cols) + " |")
+        for which in ("full", "plan"):
+            sd = pooled_sd(which)
+            lines.append(f"| seed scatter, {which} | " + " | ".join(unit(k, sd[k]) for k in cols) + " |")
         lines.append("")
     rg = {k.split("/", 1)[1]: v for k, v in d.items() if k.startswith("rigs/")}
     if rg:
