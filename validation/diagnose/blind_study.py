@@ -275,7 +275,7 @@ def provenance(trials: list[dict]) -> str:
             c = t.get("code", {}).get(key)
             label = "unrecorded" if c is None else c["commit"] + (" + uncommitted core/twin changes" if c["dirty"] else "")
             seen.setdefault(label, []).append(t["trial"])
-        return "; ".join(f"{lab} (trials {min(ks)}-{max(ks)}, {len(ks)})" for lab, ks in seen.items())
+        return "; ".join(f"{lab} ({len(ks)} trials, {min(ks)}-{max(ks)})" for lab, ks in seen.items())
     return f"Code: captures at {fmt('capture')}; diagnoses at {fmt('diagnose')}."
 
 
