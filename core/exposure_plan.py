@@ -71,7 +71,7 @@ longer exposure gains more for less).
 
    over unlinked frames u (own gain minus the reference's, jitter j each) and
    linked frames l (chain error s_k, summed as if fully correlated: a bound).
-   Requirement: sigma_g <= max(``gain_target``, ``tail`` x the full table's) on
+   Requirement: sigma_g <= max(``gain_target``, ``gain_tail`` x the full table's) on
    every measured pixel. The white patch is assumed to lie in linked frames (its
    exposure is that of a bright diffuse surface, the middle of the sequence where
    the reference frame is). Slow drift is a gain per frame as well and is treated
