@@ -231,13 +231,18 @@ def report(a) -> str:
     ex = {k.split("/", 1)[1]: v for k, v in d.items() if k.startswith("exposures/")}
     if ex:
         lines += ["## Exposure plan against the thesis's full plan (thesis rig, 8 middle LEDs, rotation 0)", "",
-                  "| material | seed | plan | images | capture (min) | " + " | ".join(cols) + " |",
-                  "|---|---|---|---|---|" + "---|" * len(cols)]
+                  "The twin's canvas (sub-pixels per output pixel edge, truth.json `supersample`) is listed: "
+                  "the twin moved from 2 to 4 while the study ran; plan and full plan of a seed are compared "
+                  "on the same canvas; the reference capture they are normalised by is one for all.", "",
+                  "| material | seed | plan | images | capture (min) | canvas | " + " | ".join(cols) + " |",
+                  "|---|---|---|---|---|---|" + "---|" * len(cols)]
         for key, v in sorted(ex.items()):
             m, s = key.split("/")
             for which in ("full", "plan"):
                 e = v[which]
-                lines.append(f"| {m} | {s} | {which} | {e['images']} | {e['minutes']:.1f} | "
+                truth = Path(a.work) / "exposures" / f"{m}_s{s}_{which}" / "truth.json"
+                canvas = json.loads(truth.read_text()).get("supersample", "?") if truth.exists() else "?"
+                lines.append(f"| {m} | {s} | {which} | {e['images']} | {e['minutes']:.1f} | {canvas} | "
                              + (" | ".join(fmt(k, e["error"][k]) for k in cols) if "error" in e else
                                 f"failed: {e['failed']} |" + " |" * (len(cols) - 1)) + " |")
         ex = {k: v for k, v in ex.items() if "error" in v["full"] and "error" in v["plan"]}
