@@ -7,13 +7,13 @@ or the name of a file in ``scenes/materials``.
 """
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import InputError
 from .rig import SCENES_DIR
 from .ward import WardParams
+from .toml_input import read_toml
 
 MATERIALS_DIR = SCENES_DIR / "materials"
 
@@ -87,8 +87,4 @@ def parse_material(spec: str) -> Material:
     if not f.is_file():
         raise InputError(f"unknown material {spec!r}: not ward:/lambert:/measured: and not one of "
                          f"{', '.join(material_names())}")
-    try:
-        d = tomllib.loads(f.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(f"not valid TOML: {e}", path=f) from None
-    return _from_table(d, spec, f)
+    return _from_table(read_toml(f, "material file"), spec, f)

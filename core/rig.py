@@ -8,13 +8,13 @@ and names the file and key in every error.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
+from .toml_input import read_toml
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 SCENES_DIR = REPO_ROOT / "scenes"
@@ -158,12 +158,7 @@ def led_position(angle_deg: float, row: str, distance: float, row_offset: float)
 def load_rig(path: str | Path) -> Rig:
     """Load and validate a rig TOML file."""
     path = Path(path)
-    try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError("rig file not found", path=path) from None
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(f"not valid TOML: {e}", path=path) from None
+    raw = read_toml(path, "rig file")
     p = str(path)
     cyl = _get(raw, "cylinder", p, dict)
     radius = _num(cyl, "radius_with_sample", p, 1, 500, "cylinder.")

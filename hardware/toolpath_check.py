@@ -27,13 +27,13 @@ from __future__ import annotations
 
 import math
 import re
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable
 
 from glossrig.core.errors import InputError
 from glossrig.core.rig import SCENES_DIR
+from glossrig.core.toml_input import read_toml
 
 DEFAULT_MACHINE = SCENES_DIR / "engraver_roland.toml"
 GCODE_SUFFIXES = {".nc", ".gcode", ".ngc", ".gc", ".tap", ".cnc"}
@@ -68,12 +68,7 @@ class MachineLimits:
 def load_machine_limits(path: str | Path | None = None, *, max_height_mm: float | None = None) -> MachineLimits:
     """Limits from a machine description (default ``scenes/engraver_roland.toml``)."""
     path = Path(path) if path is not None else DEFAULT_MACHINE
-    try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError("machine description not found", path=path) from None
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
-        raise InputError(f"cannot read machine description: {e}", path=path) from None
+    raw = read_toml(path, "machine description")
 
     def get(section, key):
         sec = raw.get(section)

@@ -9,7 +9,6 @@ file and key in every error.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +16,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..rig import SCENES_DIR
+from ..toml_input import read_toml
 
 DEFAULT_MACHINE_FILE = SCENES_DIR / "engraver_roland.toml"
 
@@ -112,12 +112,7 @@ def load_machine(path: str | Path | None = None) -> Machine:
     5.1.1, a screen with slope a/b outside [0, 1] (one pixel per column, thesis 5.2).
     """
     path = Path(path) if path is not None else DEFAULT_MACHINE_FILE
-    try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError("machine description not found", path=path) from None
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
-        raise InputError(f"cannot read machine description: {e}", path=path) from None
+    raw = read_toml(path, "machine description")
     for section in ("machine", "tool", "motion", "halftone"):
         if not isinstance(raw.get(section), dict):
             raise InputError(f"lacks the [{section}] table", path=path)

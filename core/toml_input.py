@@ -1,0 +1,26 @@
+"""Reading the project's TOML inputs (rig descriptions, materials, machine descriptions)
+with errors that name the file and the problem (design.md, "bad input")."""
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+from .errors import InputError
+
+
+def read_toml(path: str | Path, what: str) -> dict:
+    """The parsed TOML table of ``path``. ``what`` names the kind of file in the errors,
+    e.g. ``read_toml("x.toml", "rig file")`` on a missing file raises
+    ``InputError("x.toml: rig file not found")``; an unreadable or undecodable file and
+    invalid TOML (with the parser's line and column) are reported the same way."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise InputError(f"{what} not found", path=path) from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"cannot read {what}: {e}", path=path) from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"{what} is not valid TOML: {e}", path=path) from None
