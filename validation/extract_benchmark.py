@@ -8,15 +8,16 @@ per second and peak memory, split by stage.
    the given middle-row LEDs x repeats x the thesis's 18 exposures, and a camera file
    (checkerboards calibrated at scale 0.25, camera matrix scaled by 4: the twin's K
    scales exactly so).
-2. For k = 1 .. number of LEDs, builds captures holding only the first k LEDs
-   (manifests filtered, raw files linked, nothing copied) and runs the extraction of
-   sample + reference - the function ``glossrig extract`` calls, with the same
-   Parquet output - in a fresh process per k, with every stage timed by wrapping the
-   pipeline's own functions, and the process's peak resident memory (ru_maxrss)
-   recorded after each stage.
-3. Writes the Markdown report (``--out``). A thesis capture (8 LEDs x 3 repeats) is
-   stated as a linear extrapolation in the number of LEDs (CPU time and peak memory
-   from the 1-LED and k-LED runs), labelled as such.
+2. For each LED count k of ``--counts`` (default 1, 2 and all simulated LEDs), builds
+   captures holding only the first k LEDs (manifests filtered, raw files linked,
+   nothing copied) and runs the extraction of sample + reference - the function
+   ``glossrig extract`` calls, with the same Parquet output - in a fresh process per k,
+   with every stage timed by wrapping the pipeline's own functions, the process's peak
+   resident memory (ru_maxrss) recorded after each stage, and the machine's load
+   average before and after (the machine is shared: CPU seconds are the figures to read).
+3. Writes the Markdown report (``--out``). With all 8 middle-row LEDs simulated
+   (``--leds 9,10,5,6,7,8,11,12``) the thesis capture (8 LEDs x 3 repeats) is measured;
+   with fewer it is stated as a linear extrapolation in the number of LEDs, labelled so.
 
 Lamp positions are the rig file's nominal ones (the benchmark times the work, the
 accuracy is in validation/pipeline_report.md).
@@ -134,6 +135,7 @@ def measure(sample: Path, reference: Path, camera: Path, out_json: Path) -> None
     cam = load_camera(camera)
     lamps = {l.id: np.array(l.position) for l in load_rig(RIG).leds}
     base = peak_gb()
+    load0 = os.getloadavg()[0]
     t0, c0 = time.perf_counter(), time.process_time()
     df = extract_samples(sample, reference, cam, lamps)
     pq = out_json.with_suffix(".parquet")
@@ -141,7 +143,8 @@ def measure(sample: Path, reference: Path, camera: Path, out_json: Path) -> None
     total, total_cpu = time.perf_counter() - t0, time.process_time() - c0
     out_json.write_text(json.dumps({"seconds": secs, "cpu_seconds": cpu, "total_cpu_s": total_cpu, "calls": calls, "peak_gb_after": peak_after, "total_s": total,
                                     "peak_gb": peak_gb(), "peak_gb_after_imports": base, "rows": len(df),
-                                    "parquet_mb": pq.stat().st_size / 1e6, "crops": crop}))
+                                    "parquet_mb": pq.stat().st_size / 1e6, "crops": crop,
+                                    "load_average": [load0, os.getloadavg()[0]]}))
 
 
 # ----------------------------------------------------------------- report
@@ -168,6 +171,9 @@ def report(runs: dict[int, dict], args) -> str:
     n_frames = {k: k * frames_per_led for k in runs}
     n_cal = 2
 
+    loads = ", ".join(f"{k} LED{'s' if k > 1 else ''} {runs[k]['load_average'][0]:.1f} / "
+                      f"{runs[k]['load_average'][1]:.1f}" for k in sorted(runs) if "load_average" in runs[k])
+
     def stage(run, key, what="cpu_seconds"):
         s = run[what]
         if key == "geometry_rest":
@@ -175,20 +181,20 @@ def report(runs: dict[int, dict], args) -> str:
         return s.get(key, 0.0)
 
     lines = ["# `glossrig extract` at full resolution (6032 x 4032, 24.3 MP)", "",
-             "Command (simulates the captures once - about 50 min on the shared machine - then runs one "
-             "measuring process per LED count):", "",
+             "Command (simulates the captures once, then runs one measuring process per LED count):", "",
              f"    nice -n 5 python validation/extract_benchmark.py --work {args.work} --leds {args.leds} "
-             f"--repeats {args.repeats}", "",
+             f"--repeats {args.repeats} --counts {args.counts}", "",
              f"Measured: twin captures at scale 1.0 of `sample_2_6` and the `lambert:0.8` reference, LEDs "
              f"{args.leds} x {args.repeats} repeats x 18 exposures each (48 MB DNGs), one rotation; the "
              f"extraction of sample + reference as `glossrig extract` runs it (same function, same Parquet "
-             f"output). Each raw file is decoded whole by rawpy and cropped to {crop[0]} x {crop[1]} px "
-             f"({crop[0] * crop[1] / 1e6:.2f} MP: the sample and the holder's white patch).", "",
-             f"The machine has {os.cpu_count()} cores and ran three other engineers' studies at the same time "
-             f"(load average ~8): the wall-clock times are {r['total_s'] / r['total_cpu_s']:.0f}x the process's "
-             "CPU times. The CPU seconds (all threads of the process; `time.process_time`) are therefore the "
-             "figures to read; rates below are per CPU second. On an unshared machine the wall time would be "
-             "about the CPU time plus file reading (the DNGs were in the page cache or on local disk), less where "
+             f"output), for the first k LEDs of that list. Each raw file is decoded whole by rawpy and cropped "
+             f"to {crop[0]} x {crop[1]} px ({crop[0] * crop[1] / 1e6:.2f} MP: the sample and the holder's "
+             f"white patch).", "",
+             f"The machine has {os.cpu_count()} cores and was shared with other work while this ran (load "
+             f"average at the start / end of each measuring process: {loads}); the {k_max}-LED run's wall "
+             f"time was {r['total_s'] / r['total_cpu_s']:.1f}x its CPU time. The CPU seconds (all threads of "
+             "the process; `time.process_time`) are the figures to read; rates below are per CPU second. On "
+             "an unshared machine the wall time would be about the CPU time plus file reading, less where "
              "numpy/OpenCV use both cores.", "",
              "## Measured, by stage (CPU seconds)", "",
              "| stage | " + " | ".join(f"{k} LED{'s' if k > 1 else ''}" for k in sorted(runs)) +
@@ -221,33 +227,46 @@ def report(runs: dict[int, dict], args) -> str:
                      f"{runs[k]['peak_gb']:.2f} | {runs[k]['rows']} |")
     ks = sorted(runs)
     if len(ks) >= 2:
-        k0, k1 = ks[0], ks[-1]
-        per_led = (runs[k1]["total_cpu_s"] - runs[k0]["total_cpu_s"]) / (k1 - k0)
-        fixed = runs[k0]["total_cpu_s"] - k0 * per_led
-        t8 = fixed + 8 * per_led
-        dpk = runs[k1]["peak_gb"] - runs[k0]["peak_gb"]
+        pairs = list(zip(ks[:-1], ks[1:]))
+        lines += ["", "## Cost per added LED", "",
+                  f"Increments between successive measured runs, per added LED (sample + reference, "
+                  f"{frames_per_led} raw files each). A stage whose increment grows from one interval to the next "
+                  "grows faster than the number of LEDs.", "",
+                  "| stage | " + " | ".join(f"{a} -> {b} LEDs" for a, b in pairs) + " |",
+                  "|---|" + "---|" * len(pairs)]
+        for key, label in LABELS.items():
+            lines.append(f"| {label} | " + " | ".join(
+                f"{(stage(runs[b], key) - stage(runs[a], key)) / (b - a):+.1f} CPU s" for a, b in pairs) + " |")
+        lines.append("| **total** | " + " | ".join(
+            f"**{(runs[b]['total_cpu_s'] - runs[a]['total_cpu_s']) / (b - a):+.1f} CPU s**" for a, b in pairs) + " |")
+        lines.append("| peak memory | " + " | ".join(
+            f"{(runs[b]['peak_gb'] - runs[a]['peak_gb']) / (b - a):+.2f} GB" for a, b in pairs) + " |")
+        lines += ["", f"The raw frames are streamed (one LED's {args.repeats * 18} cropped frames at a time), but the "
+                  f"per-block table of every LED is kept until the diffuse normalisation (sample and reference, "
+                  f"~{r['rows'] // k_max / 1e3:.0f}k rows per LED and capture), so memory grows with the LEDs and "
+                  f"peaks in the KD-tree stage. The Parquet output is {r['parquet_mb'] / k_max:.0f} MB per LED "
+                  f"({r['rows'] // k_max} rows)."]
         n8 = 8 * frames_per_led + n_cal
-        lines += ["", "## Extrapolated to a thesis capture (not measured)", "",
-                  f"Per LED (sample + reference, {frames_per_led} raw files) the extraction costs {per_led:.1f} CPU s "
-                  f"(the {k0}- to {k1}-LED difference); the rest ({fixed:.1f} CPU s: the two calibration images' "
-                  f"poses and ray casting, the KD-tree set-up, the output) does not grow with the LEDs. "
-                  f"**Linear extrapolation to 8 LEDs x 3 repeats x 18 exposures** (sample + reference, {n8} raw "
-                  f"files, {n8 * FRAME_MP:.0f} MP): **{t8:.0f} CPU s ({t8 / 60:.1f} min) per rotation, "
-                  f"{n8 * FRAME_MP / t8:.0f} MP/s per CPU second**.", "",
-                  f"Peak memory (ru_maxrss): {runs[k0]['peak_gb']:.2f} GB with {k0} LED, {runs[k1]['peak_gb']:.2f} GB "
-                  f"with {k1} ({dpk:+.2f} GB). Part of the difference is run-to-run variation: after the "
-                  f"calibration images' poses - identical work in both runs, before any LED - the peaks were "
-                  f"{runs[k0]['peak_gb_after']['poses']:.2f} and {runs[k1]['peak_gb_after']['poses']:.2f} GB. "
-                  f"The raw frames are streamed (one LED's {args.repeats * 18} cropped frames at a time), but "
-                  f"the per-block table of every LED is kept until the diffuse normalisation (sample and "
-                  f"reference, ~{r['rows'] // k1 / 1e3:.0f}k rows and ~25 columns per LED and capture, about "
-                  f"0.13 GB each), so memory does grow with the LEDs. **Linear extrapolation (not measured): "
-                  f"{runs[k0]['peak_gb'] + (8 - k0) * dpk / (k1 - k0):.1f} GB for 8 LEDs** "
-                  f"({runs[k0]['peak_gb']:.2f} GB + 7 x {dpk / (k1 - k0):.2f} GB), well inside 24 GB; "
-                  f"per rotation, since the tables are per capture. The Parquet output is "
-                  f"{r['parquet_mb'] / k1:.0f} MB per LED ({r['rows'] // k1} rows).",
-                  "", "The captures were simulated before the twin's lens resampling changed "
-                  "(twin/render.py, area sampling, which applies only up to a 40 MP canvas, i.e. not at scale 1.0)."]
+        if 8 in runs:
+            r8 = runs[8]
+            lines += ["", "## A thesis capture (8 LEDs x 3 repeats x 18 exposures), measured", "",
+                      f"Sample + reference, {n8} raw files, {n8 * FRAME_MP:.0f} MP: **{r8['total_cpu_s']:.0f} CPU s "
+                      f"({r8['total_cpu_s'] / 60:.1f} min) per rotation, {n8 * FRAME_MP / r8['total_cpu_s']:.0f} MP/s "
+                      f"per CPU second, peak memory {r8['peak_gb']:.2f} GB** (of the machine's 24 GB); "
+                      f"wall {r8['total_s']:.0f} s on the shared machine."]
+        else:
+            a, b = pairs[-1]
+            per_led = (runs[b]["total_cpu_s"] - runs[a]["total_cpu_s"]) / (b - a)
+            dpk = (runs[b]["peak_gb"] - runs[a]["peak_gb"]) / (b - a)
+            t8 = runs[b]["total_cpu_s"] + (8 - b) * per_led
+            lines += ["", "## Extrapolated to a thesis capture (not measured)", "",
+                      f"**Linear extrapolation from the {a}- and {b}-LED runs to 8 LEDs x 3 repeats x 18 exposures** "
+                      f"(sample + reference, {n8} raw files, {n8 * FRAME_MP:.0f} MP): **{t8:.0f} CPU s "
+                      f"({t8 / 60:.1f} min) per rotation, {n8 * FRAME_MP / t8:.0f} MP/s per CPU second, "
+                      f"{runs[b]['peak_gb'] + (8 - b) * dpk:.1f} GB peak** - not measured, and a lower bound where a "
+                      "stage grows faster than linearly: simulate all 8 middle-row LEDs to measure it."]
+    lines += ["", "At scale 1.0 the twin renders each output pixel from one read of its pinhole canvas "
+              "(`twin/render.py`, `LensMap.MAX_CANVAS_MP`); the extraction's cost does not depend on that."]
     return "\n".join(lines) + "\n"
 
 
@@ -256,6 +275,8 @@ def main() -> None:
     ap.add_argument("--work", required=True)
     ap.add_argument("--leds", default="9,10", help="middle-row LEDs to simulate (comma-separated)")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--counts", default="1,2,all",
+                    help="LED counts to measure (first k of --leds), comma-separated; 'all' = every LED of --leds")
     ap.add_argument("--out", default=str(ROOT / "validation/extract_benchmark.md"))
     ap.add_argument("--measure", nargs=4, metavar=("SAMPLE", "REF", "CAMERA", "OUT_JSON"), help=argparse.SUPPRESS)
     a = ap.parse_args()
@@ -266,8 +287,11 @@ def main() -> None:
     w.mkdir(parents=True, exist_ok=True)
     prepare(w, a.leds, a.repeats)
     leds = [int(x) for x in a.leds.split(",")]
+    counts = sorted({len(leds) if c == "all" else int(c) for c in a.counts.split(",")})
+    if not counts or counts[0] < 1 or counts[-1] > len(leds):
+        ap.error(f"--counts {a.counts}: each count must be 1..{len(leds)} (the LEDs of --leds)")
     runs = {}
-    for k in range(1, len(leds) + 1):
+    for k in counts:
         res = w / f"bench_{k}led.json"
         if not res.exists():
             s = subset(w / "sample", w / f"sample_{k}led", leds[:k])
