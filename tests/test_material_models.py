@@ -134,6 +134,15 @@ def test_fit_lobe_recovers_ggx_parameters():
     assert angle_arrays({k: a[k] for k in a})["theta_d"].size == 5000
 
 
+def test_fit_lobe_starts_inside_its_range_from_an_outside_start():
+    # rgl_study starts the GGX fit from a Ward fit; on the white paper that Ward alpha exceeds GGX's bound 1
+    rng = np.random.default_rng(5)
+    a = _rig_like(3000, rng)
+    y = 0.5 / np.pi + 0.3 * ggx_lobe(*_args(a), 0.4, 0.2, 0.3)
+    f = fit_lobe(a, y, np.ones_like(y), "ggx", start=(1.7, 2.5, 0.0))
+    assert abs(f.alpha_x / 0.4 - 1) < 0.01 and abs(f.alpha_y / 0.2 - 1) < 0.01 and abs(f.rho_d / 0.5 - 1) < 0.01
+
+
 def _brdf_model(kind, seed, ref_shape=None):
     """A BrdfModel over rig-like synthetic rows (4 LEDs by azimuth), measured values from a GGX or
     Ward truth with 1 % noise, normalised by a reference that is ``ref_shape`` times Lambertian 0.8."""
