@@ -41,6 +41,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "validation"))
 from pipeline_study import calibrate, simulate as simulate_capture  # noqa: E402
+from provenance import code_version  # noqa: E402
 
 RIG = ROOT / "scenes/thesis_rig.toml"
 OUT = Path(__file__).parent / "blind_study.md"
@@ -83,14 +84,6 @@ def calibration(work: Path, a) -> tuple[str, str, str]:
     cam, lamps = calibrate(out, 0.25, 1, leds=leds, extra=("--ideal",))
     ref = simulate_capture(out / "reference", "lambert:0.8", 0.25, 3, "0", 1, extra=("--ideal",), leds=leds)
     return str(cam), str(lamps), str(ref)
-
-
-def code_version() -> dict:
-    """The commit the working tree is at, and whether core/ or twin/ differ from it."""
-    def git(*args):
-        return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True).stdout.strip()
-    return {"commit": git("rev-parse", "--short", "HEAD"),
-            "dirty": bool(git("status", "--porcelain", "--untracked-files=no", "--", "core", "twin"))}
 
 
 def setup(work: Path, a):

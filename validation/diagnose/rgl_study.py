@@ -31,6 +31,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "validation"))
 from pipeline_study import calibrate, simulate  # noqa: E402  (one way to script the chain)
+from provenance import code_version, describe, record  # noqa: E402
 
 RGL = Path("/work/shared/data/rgl") if not (ROOT.parent / "shared/data/rgl").is_dir() else ROOT.parent / "shared/data/rgl"
 MATERIALS = ("satin_rosaline_rgb", "vch_golden_yellow_rgb", "cc_ibiza_sunset_rgb", "paper_white_rgb")
@@ -51,18 +52,26 @@ def captures(work: Path, a) -> dict:
     ref = simulate(work / "reference", f"measured:{REFERENCE}", a.scale, 3, a.rotations, 1)
     out = {}
     for k, m in enumerate(a.materials.split(",")):
+        prov = work / "provenance.json"
+        made = not (work / m / "truth.json").exists() or not json.loads((work / m / "capture.json").read_text()).get(
+            "complete")
         cap = simulate(work / m, f"measured:{RGL / (m + '.bsdf')}", a.scale, 10 + k, a.rotations, 1)
+        if made:
+            record(prov, f"{m}/capture")
         sp, fj, dg = work / f"{m}.parquet", work / f"{m}.fit.json", work / f"{m}.diagnose"
         out[m] = {"capture": str(cap), "samples": str(sp), "fit": str(fj), "diagnose": str(dg)}
         err = None
         if not sp.exists():
             err = _stage("extract", cap, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", sp,
                          "--no-progress")
+            record(prov, f"{m}/extract")
         if err is None and not fj.exists():
             err = _stage("fit", sp, "--out", fj)
+            record(prov, f"{m}/fit")
         if err is None and a.diagnose and not (dg / "report.json").exists():
             err = _stage("diagnose", cap, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", dg,
                          "--reference-brdf", REFERENCE, "--no-progress")
+            record(prov, f"{m}/diagnose")
         if err:
             out[m]["failed"] = err
             print(f"[{m}] {err}", flush=True)
@@ -260,6 +269,58 @@ def _pct(x) -> str:
     return "n/a" if x is None else f"{100 * x:.1f} %"
 
 
+def reading(results: dict) -> list[str]:
+    """The 'Reading the results' bullets, each stated from the numbers of this run."""
+    ok = {m: r for m, r in results.items() if not m.startswith("_") and "failed" not in r}
+
+    def held(r, k):
+        return r[k]["heldout"]["median_abs_rel"]
+
+    def rig(r, k):
+        return r[k]["rig"]["median_abs_rel"]
+
+    flat = [m for m, r in ok.items() if not r["fresnel"]["identifiable"]]
+    out = [f"* **Identifiability.** Fresnel (c): the held-out error of the rig's own data (LED folds) is flat "
+           f"along n in {len(flat)} of {len(ok)} materials ({', '.join(flat) or 'none'}), while the error "
+           "against the truth at theta_d > 30 deg moves along n (each material's section): the factor matters "
+           "where the rig does not look, and the rig cannot fix it. The row '(a)+(b)+(c) at the profile's "
+           "minimum' only makes that visible; its n is the arg-min of a flat curve, not a measurement."]
+    data = ", ".join(f"{m} {_pct(r['data']['thesis_normalised']['median_abs_rel'])} -> "
+                     f"{_pct(r['data']['reference_renormalised']['median_abs_rel'])}" for m, r in ok.items())
+    both = ", ".join(f"{m} {_pct(held(r, 'ggx_only'))} -> {_pct(held(r, 'reference_ggx'))} held-out, "
+                     f"{_pct(rig(r, 'ggx_only'))} -> {_pct(rig(r, 'reference_ggx'))} at the rig's angles"
+                     for m, r in ok.items())
+    out.append("* **(a) is a data error, (b) a model error.** Renormalising with the paper's BRDF corrects the "
+               f"extracted data ({data}; what remains is the pipeline's own error). Whether a *model* fitted to "
+               "the corrected data is closer to the truth depends on the lobe: a lobe fitted to thesis-normalised "
+               "data partly absorbs the reference's angular error. GGX fitted to renormalised instead of "
+               f"thesis-normalised data: {both}.")
+    verdicts = []
+    for m, r in ok.items():
+        d = r.get("diagnose")
+        if not d:
+            continue
+        c = {x["name"]: x for x in d["causes"]}
+        ref = c.get("reference_brdf")
+        verdicts.append(f"{m} `{d['verdict']}`" + (f" (reference_brdf gain {100 * ref['gain']:+.1f} %, "
+                                                    f"{'significant' if ref['significant'] else 'not significant'})"
+                                                    if ref else ""))
+    out.append("* **What diagnose sees without ground truth.** It scores each cause by held-out prediction error "
+               f"on the capture alone: {'; '.join(verdicts)}. The reference cause changes what is measured, not "
+               "only how well a model predicts it, so where the lobe misfit dominates the held-out error its gain "
+               "can be negative although the data error falls (for the paper measured against itself the "
+               "thesis-normalised data is exactly constant, so any correction can only lose): its benefit is "
+               "read from this ground-truth study.")
+    best = []
+    for m, r in ok.items():
+        k = min((k for k, _ in STAGES), key=lambda k: held(r, k))
+        best.append(f"{m} {_pct(held(r, 'thesis'))} -> {_pct(held(r, k))} ({k})" if k != "thesis" else
+                    f"{m} {_pct(held(r, 'thesis'))} (no extension lowers it)")
+    out.append("* **Held-out angles** (theta_d > 30 deg, never seen by the rig), thesis model -> best extension: "
+               + ", ".join(best) + ". A rig-angle gain is not a global one.")
+    return out
+
+
 def markdown(results: dict, a) -> str:
     import numpy as np
 
@@ -267,8 +328,9 @@ def markdown(results: dict, a) -> str:
          "Command (resumable; about 40 min on 2 shared cores):", "",
          "    nice -n 5 python validation/diagnose/rgl_study.py --work /tmp/rgl_study \\",
          "        --camera CAMERA.json --lamps LAMPS.json      # optional: reuse calibrations of this rig and scale", "",
-         "(The committed run reused the camera and lamp calibrations of validation/recovery_study.py's work folder, "
-         "same rig and scale, and rendered with the twin of commit b37f959.)", "",
+         f"Report written at commit {describe(code_version())}. The study is resumable: stages found in WORK are "
+         "reused, so they may have run at other commits; each stage run records its commit in "
+         "WORK/provenance.json, listed per material below.", "",
          f"Materials: the RGL measurements of ../shared/data/rgl (Dupuy & Jakob, \"An Adaptive Parameterization "
          f"for Efficient Material Acquisition and Rendering\", ACM TOG 37(6), SIGGRAPH Asia 2018), rendered by "
          f"Mitsuba's `measured` plugin. Captures: scale {a.scale}, the 8 middle-row LEDs, rotations {a.rotations}, "
@@ -315,39 +377,17 @@ def markdown(results: dict, a) -> str:
         L.append(f"| {m} | {r['theta_d_max_deg']:.1f} deg | {_pct(r['data']['thesis_normalised']['median_abs_rel'])} | "
                  f"{_pct(r['data']['reference_renormalised']['median_abs_rel'])} | " + " | ".join(cells) +
                  f" | {'identifiable' if fr['identifiable'] else 'unidentifiable'} |")
-    L += ["", "## Reading the results", "",
-          "* **Identifiability.** Fresnel (c) is flagged from the rig's own data: its held-out error (LED folds) "
-          "is flat along n in every material measured (column 'Fresnel n'), while the error against the truth at "
-          "theta_d > 30 deg does move along n: the factor matters where the rig does not look, and the rig "
-          "cannot fix it. The row '(a)+(b)+(c) at the profile's minimum' is shown only to make that visible; its "
-          "n is the arg-min of a flat curve, not a measurement, and a free fit of n ends at a bound.",
-          "* **(a) is a data error, (b) a model error.** Renormalising with the paper's BRDF takes the extracted "
-          "data from the 'thesis normalisation' error to the 'reference renormalised' one (the pipeline's own "
-          "floor). Whether a *model* fitted to the corrected data is closer to the truth depends on the lobe: "
-          "Ward's lobe fitted to the thesis-normalised data partly absorbs the reference's angular error, so "
-          "(a) alone can raise the Ward model's error. With the GGX lobe, (a)+(b) has the lower held-out error "
-          "on the glossy materials than (b) alone, but not uniformly the lower rig-angle error (tables below).",
-          "* **What diagnose can and cannot see.** Without ground truth, `glossrig diagnose` scores a cause by "
-          "held-out prediction error on the capture. The GGX lobe is found that way on glossy materials. The "
-          "reference cause changes what is measured, not how well a model predicts it: when the lobe model is "
-          "right (tests/test_material_models.py hides a non-Lambertian reference under a Ward material) it is "
-          "found, but on real materials the lobe misfit dominates and its held-out error rises (large negative "
-          "gains below; for the paper measured against itself the thesis-normalised data is exactly constant, "
-          "so any correction can only lose). Its gain must be read from this ground-truth study.",
-          "* **Held-out angles.** No extension fixes the held-out error of the diffuse paper: a GGX lobe fitted "
-          "to its small rig-angle structure extrapolates badly beyond theta_d = 30 deg, a caution against "
-          "reading rig-angle gains as global ones.", ""]
+    L += ["", "## Reading the results", ""] + reading(results) + [""]
+    pf = Path(a.work) / "provenance.json"
+    prov = json.loads(pf.read_text()) if pf.exists() else {}
     for m, r in results.items():
         if m.startswith("_"):
             continue
         L += ["", f"## {m}", ""]
+        stages = ("capture", "extract", "fit", "diagnose", "analysis")
+        L += ["Code: " + ", ".join(f"{st} at {describe(prov.get(f'{m}/{st}'))}" for st in stages) + ".", ""]
         if "failed" in r:
-            L += [f"Not measured: {r['failed']}.", "",
-                  "Cause (inspected on the calibration image): the sample's saturated yellow highlight. Marker "
-                  "detection white-balances on the brightest unclipped pixels "
-                  "(`glossrig.core.marker_detect.white_balance`), which here are the highlight's yellow flanks; "
-                  "the balanced markers are then no longer red. A pipeline limitation this study found, not fixed "
-                  "here.", ""]
+            L += [f"Not measured: {r['failed']}.", ""]
             continue
         L += [f"{r['n_samples']} extracted samples, {r['n_heldout']} held-out directions. "
               f"The extracted data itself is off by {_pct(r['data']['thesis_normalised']['median_abs_rel'])} "
@@ -416,6 +456,7 @@ def main(argv=None):
             continue
         if not f.exists():
             f.write_text(json.dumps(analyse(m, r, work, a), indent=1))
+            record(work / "provenance.json", f"{m}/analysis")
         results[m] = json.loads(f.read_text())
         results[m]["diagnose"] = diagnose_summary(r)
     results["_paper_albedo"] = {str(t): paper_albedo(t) for t in (0, 45)}

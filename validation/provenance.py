@@ -1,0 +1,33 @@
+"""Which code a study's stages ran with: the commit, and whether core/ or twin/ differed
+from it (uncommitted edits). Studies are resumable, so a report may combine stages run at
+different commits; each study records them and states them in its report."""
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def code_version() -> dict:
+    """The commit the working tree is at, and whether core/ or twin/ differ from it."""
+    def git(*args):
+        return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True).stdout.strip()
+    return {"commit": git("rev-parse", "--short", "HEAD"),
+            "dirty": bool(git("status", "--porcelain", "--untracked-files=no", "--", "core", "twin"))}
+
+
+def describe(v: dict | None) -> str:
+    if not v:
+        return "not recorded"
+    return v["commit"] + (" (core/twin modified)" if v.get("dirty") else "")
+
+
+def record(path: Path, key: str) -> None:
+    """Add ``key`` -> the current code version to the JSON file ``path`` (created if missing)."""
+    d = json.loads(path.read_text()) if path.exists() else {}
+    d[key] = code_version()
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(d, indent=1))
+    tmp.replace(path)
