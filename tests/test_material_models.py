@@ -134,12 +134,14 @@ def test_fit_lobe_recovers_ggx_parameters():
     assert angle_arrays({k: a[k] for k in a})["theta_d"].size == 5000
 
 
-def test_fit_lobe_starts_inside_its_range_from_an_outside_start():
-    # rgl_study starts the GGX fit from a Ward fit; on the white paper that Ward alpha exceeds GGX's bound 1
+@pytest.mark.parametrize("start", [(1.7, 2.5, 0.0), (0.486, 1e-4, 2.63)])
+def test_fit_lobe_starts_inside_its_range_from_an_outside_start(start):
+    # rgl_study starts the GGX fit from a Ward fit; on the white paper that fit ends at alpha_y = 1e-4,
+    # below GGX's range [1e-3, 1] (least_squares refused such a start)
     rng = np.random.default_rng(5)
     a = _rig_like(3000, rng)
     y = 0.5 / np.pi + 0.3 * ggx_lobe(*_args(a), 0.4, 0.2, 0.3)
-    f = fit_lobe(a, y, np.ones_like(y), "ggx", start=(1.7, 2.5, 0.0))
+    f = fit_lobe(a, y, np.ones_like(y), "ggx", start=start)
     assert abs(f.alpha_x / 0.4 - 1) < 0.01 and abs(f.alpha_y / 0.2 - 1) < 0.01 and abs(f.rho_d / 0.5 - 1) < 0.01
 
 

@@ -178,9 +178,10 @@ def fit_lobe(a: dict, y, W, kind: str = "ggx", start=(0.1, 0.1, 0.0), n=None, fi
     ub = [math.log(1.0)] * 2 + [np.inf] + ([4.0] if fit_n else [])
     best = None
     for x_start in (x0, [x0[1], x0[0], x0[2] + math.pi / 2] + x0[3:]):
-        # a start from another model's fit (a Ward alpha above 1 on a nearly diffuse material) may lie
-        # outside this lobe's range: start a factor 2 inside it, not on the bound, where the lobe is
-        # nearly flat, NNLS sets rho_s = 0 and the gradient in alpha vanishes
+        # a start from another model's fit may lie outside this lobe's range (on the white paper the
+        # Ward fit ends with rho_s ~ 0 and alpha_y = 1e-4, which nothing constrains): start a factor 2
+        # inside the range, not on a bound, where the lobe is degenerate (a spike or flat), NNLS sets
+        # rho_s = 0 and the gradient in alpha vanishes
         x_start = np.array(x_start, float)
         x_start[:2] = np.clip(x_start[:2], lb[0] + math.log(2), ub[0] - math.log(2))
         if fit_n:
