@@ -53,8 +53,8 @@ def captures(work: Path, a) -> dict:
     out = {}
     for k, m in enumerate(a.materials.split(",")):
         prov = work / "provenance.json"
-        made = not (work / m / "truth.json").exists() or not json.loads((work / m / "capture.json").read_text()).get(
-            "complete")
+        manifest = work / m / "capture.json"
+        made = not (manifest.exists() and json.loads(manifest.read_text()).get("complete"))
         cap = simulate(work / m, f"measured:{RGL / (m + '.bsdf')}", a.scale, 10 + k, a.rotations, 1)
         if made:
             record(prov, f"{m}/capture")
