@@ -24,8 +24,9 @@ of `glossrig design exposures` (run through `glossrig capture` on the twin
 backends, planned for the twin's scale: ``--capture-scale``), same seeds (same renders
 and LED fluctuation streams).
 
-rigs: the thesis rig as measured (8 middle LEDs, rotations -45/0/45/90) against
-scenes/optimised_rig.toml (16 LEDs, its rotations), each captured with its
+rigs: the thesis rig as measured (8 middle LEDs, rotations -45/0/45/90; ``thesis``), the
+thesis hardware with all 16 LEDs (``thesis16``) and scenes/optimised_rig.toml (16 LEDs, its
+rotations; ``optimised``) - ``--rigs`` picks among them - each captured with its
 `glossrig design exposures` plan (same noise target) and compared with the Fisher
 predictions of `glossrig design errors` at the same scale: independent pixels, and
 with each sequence's residual LED gain as a nuisance parameter of the size the
@@ -54,7 +55,7 @@ from pipeline_study import glossrig  # noqa: E402
 
 THESIS = ROOT / "scenes/thesis_rig.toml"
 OPTIMISED = ROOT / "scenes/optimised_rig.toml"
-RIGS = {"thesis": (THESIS, "middle"), "optimised": (OPTIMISED, "all")}
+RIGS = {"thesis": (THESIS, "middle"), "thesis16": (THESIS, "all"), "optimised": (OPTIMISED, "all")}
 PARAMS = ("rho_d", "rho_s", "alpha_x", "alpha_y")
 REF_SEED = 100
 
@@ -180,7 +181,10 @@ def run_rigs(a) -> None:
     from glossrig.core.rig import load_rig
 
     setup = {}
-    for name, (rig, leds) in RIGS.items():
+    for name in a.rigs.split(","):
+        if name not in RIGS:
+            raise SystemExit(f"--rigs: unknown rig {name!r} (have {', '.join(RIGS)})")
+        rig, leds = RIGS[name]
         work = Path(a.work) / "rigs" / name
         work.mkdir(parents=True, exist_ok=True)
         rots = ",".join(f"{r:g}" for r in load_rig(rig).sample_rotations)
@@ -280,7 +284,7 @@ def report(a) -> str:
         lines.append("")
     rg = {k.split("/", 1)[1]: v for k, v in d.items() if k.startswith("rigs/")}
     if rg:
-        lines += ["## Thesis rig (8 middle LEDs) against the optimised 16-LED rig", "",
+        lines += ["## The thesis rig (8 middle LEDs: `thesis`; all 16: `thesis16`) against the optimised 16-LED rig", "",
                   "Per rig and material: RMS over seeds of the recovered errors (Monte Carlo), their scatter "
                   "between seeds (standard deviation, the random part) and the Fisher predictions (relative "
                   "standard error, same scale): `indep.` with independent pixels (sensor noise + 1 % LED "
@@ -325,6 +329,7 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=0.125)
     ap.add_argument("--materials", default="sample_2_6,brushed_original")
     ap.add_argument("--seeds", default="1,2")
+    ap.add_argument("--rigs", default="thesis,optimised", help=f"rigs to capture, of {', '.join(RIGS)}")
     ap.add_argument("--out", default=str(HERE / "twin.md"))
     a = ap.parse_args()
     {"exposures": run_exposures, "rigs": run_rigs, "report": report}[a.what](a)
