@@ -325,7 +325,7 @@ def markdown(results: dict, a) -> str:
     import numpy as np
 
     L = ["# Real measured BRDFs on the twin: what the thesis's model gets wrong (issue 7)", "",
-         "Command (resumable; about 40 min on 2 shared cores):", "",
+         "Command (resumable; about 40 min on 2 cores, 78 min for the committed run with four other studies on the same cores):", "",
          "    nice -n 5 python validation/diagnose/rgl_study.py --work /tmp/rgl_study \\",
          "        --camera CAMERA.json --lamps LAMPS.json      # optional: reuse calibrations of this rig and scale", "",
          f"Report written at commit {describe(code_version())}. The study is resumable: stages found in WORK are "
