@@ -163,6 +163,16 @@ class Manifest:
                 raise InputError("checksum does not match the manifest (file damaged or replaced)", path=f)
 
 
+def capture_complete(folder: str | Path) -> bool:
+    """Whether ``folder`` holds a finished capture: a readable manifest marked complete (a
+    capture is marked complete only after its last image is written). False for a missing,
+    half-written or unreadable one - the test resumable studies use before re-capturing."""
+    try:
+        return bool(json.loads((Path(folder) / MANIFEST).read_text()).get("complete", False))
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
 def load_manifest(folder: str | Path) -> Manifest:
     folder = Path(folder)
     path = folder / MANIFEST

@@ -376,3 +376,17 @@ def test_serial_relay_board_that_stops_answering_mid_capture(tmp_path):
         m = load_manifest(out)
         assert [im.role for im in m.images] == ["calibration"]
         m.verify()
+
+
+def test_capture_complete_only_for_a_finished_manifest(tmp_path):
+    from glossrig.core.capture import capture_complete
+
+    assert not capture_complete(tmp_path / "missing")
+    (tmp_path / "capture.json").write_text('{"rig": "r", "material": "m", "images": [], "complete": false}')
+    assert not capture_complete(tmp_path)
+    (tmp_path / "capture.json").write_text('{"rig": "r", "material": "m", "images": [], "complete": true}')
+    assert capture_complete(tmp_path)
+    (tmp_path / "capture.json").write_text('{"rig": "r", "complete": tr')      # cut off mid-write
+    assert not capture_complete(tmp_path)
+    (tmp_path / "capture.json").write_text('[1, 2]')                           # not a manifest
+    assert not capture_complete(tmp_path)

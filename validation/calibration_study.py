@@ -37,6 +37,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from glossrig.core.capture import capture_complete
+
 ROOT = Path(__file__).resolve().parents[1]
 RIG = ROOT / "scenes/thesis_rig.toml"
 
@@ -47,8 +49,7 @@ def glossrig(*args) -> None:
 
 
 def simulate(out: Path, *args) -> Path:
-    man = out / "capture.json"
-    if not (man.exists() and json.loads(man.read_text()).get("complete")):
+    if not capture_complete(out):
         if out.exists():
             import shutil
 

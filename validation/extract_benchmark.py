@@ -33,6 +33,8 @@ import sys
 import time
 from pathlib import Path
 
+from glossrig.core.capture import capture_complete
+
 ROOT = Path(__file__).resolve().parents[1]
 RIG = ROOT / "scenes/thesis_rig.toml"
 FRAME_MP = 6032 * 4032 / 1e6
@@ -40,11 +42,6 @@ FRAME_MP = 6032 * 4032 / 1e6
 
 def glossrig(*args):
     subprocess.run([sys.executable, "-m", "glossrig.cli.main", *map(str, args)], check=True)
-
-
-def complete(folder: Path) -> bool:
-    m = folder / "capture.json"
-    return m.exists() and json.loads(m.read_text()).get("complete", False)
 
 
 def prepare(w: Path, leds: str, repeats: int) -> None:
@@ -61,7 +58,7 @@ def prepare(w: Path, leds: str, repeats: int) -> None:
         c["image_size"] = [6032, 4032]
         (w / "camera.json").write_text(json.dumps(c))
     for name, mat, seed in (("sample", "sample_2_6", 2), ("reference", "lambert:0.8", 3)):
-        if not complete(w / name):
+        if not capture_complete(w / name):
             import shutil
 
             shutil.rmtree(w / name, ignore_errors=True)

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from glossrig.core.capture import capture_complete
+
 ROOT = Path(__file__).resolve().parents[1]
 RIG = ROOT / "scenes/thesis_rig.toml"
 
@@ -34,7 +36,7 @@ def glossrig(*args) -> None:
 
 def simulate(out: Path, material: str, scale: float, seed: int, rotations: str, repeats: int, extra=(),
              leds: str = "middle") -> Path:
-    if not (out / "capture.json").exists() or not json.loads((out / "capture.json").read_text()).get("complete"):
+    if not capture_complete(out):
         if out.exists():
             import shutil
 

@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from glossrig.core.capture import capture_complete
 from glossrig.core.fit import parameter_errors
 
 HERE = Path(__file__).resolve().parent
@@ -60,11 +61,6 @@ PARAMS = ("rho_d", "rho_s", "alpha_x", "alpha_y")
 REF_SEED = 100
 
 
-def complete(folder: Path) -> bool:
-    m = folder / "capture.json"
-    return m.exists() and bool(json.loads(m.read_text()).get("complete"))
-
-
 def fresh(folder: Path) -> None:
     if folder.exists():
         shutil.rmtree(folder)
@@ -72,7 +68,7 @@ def fresh(folder: Path) -> None:
 
 def simulate(out: Path, rig: Path, material: str, leds: str, rotations: str, repeats: int, scale: float,
              seed: int) -> Path:
-    if not complete(out):
+    if not capture_complete(out):
         fresh(out)
         glossrig("simulate", "--rig", rig, "--material", material, "--leds", leds, f"--rotations={rotations}",
                  "--repeats", repeats, "--scale", scale, "--seed", seed, "--no-progress", "--out", out)
@@ -86,7 +82,7 @@ def planned_capture(out: Path, rig: Path, material: str, leds: str, rotations: s
     if not report.exists():
         glossrig("design", "exposures", "--rig", rig, "--material", material, "--leds", leds,
                  f"--rotations={rotations}", "--capture-scale", scale, "--out", plan, "--report", report)
-    if not complete(out):
+    if not capture_complete(out):
         fresh(out)
         twin = plan.with_name(plan.stem + ".twin.toml")
         twin.write_text(plan.read_text() + f'\n[twin]\nmaterial = "{material}"\nscale = {scale}\nseed = {seed}\n')

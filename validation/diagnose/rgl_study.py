@@ -33,6 +33,8 @@ sys.path.insert(0, str(ROOT / "validation"))
 from pipeline_study import calibrate, simulate  # noqa: E402  (one way to script the chain)
 from provenance import code_version, describe, record  # noqa: E402
 
+from glossrig.core.capture import capture_complete  # noqa: E402
+
 RGL = Path("/work/shared/data/rgl") if not (ROOT.parent / "shared/data/rgl").is_dir() else ROOT.parent / "shared/data/rgl"
 MATERIALS = ("satin_rosaline_rgb", "vch_golden_yellow_rgb", "cc_ibiza_sunset_rgb", "paper_white_rgb")
 REFERENCE = RGL / "paper_white_rgb.bsdf"
@@ -53,8 +55,7 @@ def captures(work: Path, a) -> dict:
     out = {}
     for k, m in enumerate(a.materials.split(",")):
         prov = work / "provenance.json"
-        manifest = work / m / "capture.json"
-        made = not (manifest.exists() and json.loads(manifest.read_text()).get("complete"))
+        made = not capture_complete(work / m)
         cap = simulate(work / m, f"measured:{RGL / (m + '.bsdf')}", a.scale, 10 + k, a.rotations, 1)
         if made:
             record(prov, f"{m}/capture")
