@@ -32,10 +32,9 @@ def greedy(data: cov.CoverageData, conv: cov.Convention, n_max: int, start: list
         c = cov.coverage(data, conv, rotations=chosen)
         rows.append((list(chosen), c["anisotropic"], c["isotropic"]))
     while len(chosen) < n_max:
-        best = max((r for r in data.rotations if r not in chosen),
-                   key=lambda r: cov.coverage(data, conv, rotations=chosen + [r])["anisotropic_bins"])
+        best, c = max(((r, cov.coverage(data, conv, rotations=chosen + [r]))
+                       for r in data.rotations if r not in chosen), key=lambda rc: rc[1]["anisotropic_bins"])
         chosen.append(best)
-        c = cov.coverage(data, conv, rotations=chosen)
         rows.append((list(chosen), c["anisotropic"], c["isotropic"]))
     return rows
 
