@@ -35,6 +35,19 @@ if [ -z "${DRJIT_LIBLLVM_PATH:-}" ]; then
     fi
 fi
 
+# Tools the tests use where a user would use them: headless Chromium opens the HTML
+# report (tests/test_report.py) and glslangValidator compiles the exported BRDF
+# Explorer shader (tests/test_exports.py). Installed when we can (root + apt); the
+# tests that need them skip with the reason where they are missing.
+want=()
+command -v chromium >/dev/null || want+=(chromium)
+command -v glslangValidator >/dev/null || want+=(glslang-tools)
+if [ "${#want[@]}" -gt 0 ] && [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null; then
+    echo "[glossrig] installing ${want[*]} for the report and export tests" >&2
+    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${want[@]}") >/dev/null 2>&1 \
+        || echo "[glossrig] WARNING: could not install ${want[*]}; the tests that need them will skip" >&2
+fi
+
 STAMP="$VENV/.glossrig-installed"
 if [ ! -x "$VENV/bin/python" ]; then
     echo "[glossrig] creating virtual environment $VENV" >&2

@@ -29,6 +29,64 @@ ROLES = ("calibration", "sequence", "checkerboard")
 REQUIRED = ("file", "role", "leds", "rotation", "repeat", "exposure_s", "iso", "aperture", "time", "sha256")
 
 
+# ------------------------------------------------------------------ file names
+#
+# One naming scheme for every capture, whether the twin (``glossrig simulate``), the
+# twin backends or the real rig (``glossrig capture``) takes it, so two captures of
+# the same plan hold the same files. Readers never parse these names: the manifest
+# lists every file with its role, LEDs, rotation, repeat and exposure, and captures
+# written with older names (``seq_rp000_led05_rep0_e00.dng``) still read.
+
+def rotation_tag(deg: float) -> str:
+    """A sample rotation (degrees) as a file-name fragment, exact to 0.01 degree.
+
+    A sign letter (``p`` for zero and positive, ``m`` for negative), at least three
+    integer digits, a point and two decimals: 22 -> ``p022.00``, 22.5 -> ``p022.50``,
+    -0.4 -> ``m000.40``, 0 and -0 -> ``p000.00``, 359.99 -> ``p359.99``. Rotations that
+    differ by 0.01 degree or more never share a tag; :func:`check_rotation_tags`
+    refuses a set of rotations closer than that (they would name the same files)."""
+    x = float(deg)
+    if x != x or x in (float("inf"), float("-inf")):
+        raise InputError(f"rotation must be a finite number of degrees, got {deg!r}")
+    hundredths = round(x * 100)        # integer arithmetic: no "-0.00", no float formatting surprises
+    sign = "m" if hundredths < 0 else "p"
+    whole, frac = divmod(abs(hundredths), 100)
+    return f"{sign}{whole:03d}.{frac:02d}"
+
+
+def check_rotation_tags(rotations, where=None) -> None:
+    """Refuse rotations whose file names would collide (equal to 0.01 degree)."""
+    seen: dict[str, float] = {}
+    for r in rotations:
+        t = rotation_tag(r)
+        if t in seen and float(seen[t]) != float(r):
+            raise InputError(f"rotations {seen[t]:g} and {float(r):g} degrees are closer than 0.01 degree: their "
+                             f"images would have the same file names (rot{t}_...); give rotations to 0.01 degree",
+                             path=where)
+        seen.setdefault(t, r)
+
+
+def image_stem(role: str, *, rotation: float = 0.0, leds=(), repeat: int = 0, exposure_index: int = 0,
+               view: int | None = None) -> str:
+    """The file name (without extension) of one planned image, unique within a plan.
+
+    ``checkerboard_view03``; ``rotp045.00_calibration`` (all LEDs, one per rotation);
+    ``rotm045.00_led06_rep1_exp07`` (LED ids as the rig numbers them, 1-16 on the thesis
+    rig; several LEDs joined by ``-``; ``exp`` is the index in the LED's exposure
+    sequence, shortest first)."""
+    if role == "checkerboard":
+        if view is None:
+            raise InputError("a checkerboard image needs its view number")
+        return f"checkerboard_view{int(view):02d}"
+    rot = rotation_tag(rotation)
+    if role == "calibration":
+        return f"rot{rot}_calibration"
+    if role == "sequence":
+        led = "-".join(f"{int(i):02d}" for i in leds)
+        return f"rot{rot}_led{led}_rep{int(repeat)}_exp{int(exposure_index):02d}"
+    raise InputError(f"role {role!r} not one of {ROLES}")
+
+
 def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -153,6 +211,48 @@ class Manifest:
     def rotations(self) -> list[float]:
         return sorted({im.rotation for im in self.images if im.role == "sequence"})
 
+    def read_raw(self, im: ImageEntry, crop=None):
+        """Decode one of this capture's raw files (:func:`glossrig.core.raw.read_raw`),
+        checked against what the manifest recorded: its sha256 (hashed from the same
+        bytes that are decoded, so the check costs one pass over data already in
+        memory) and its exposure time, ISO and f-number. Every pipeline stage reads
+        capture images through here, so a file changed since capture stops with
+        "checksum does not match capture.json" naming it, never silently wrong values."""
+        from .raw import read_raw
+
+        return read_raw(self.folder / im.file, crop=crop, exposure_s=im.exposure_s, iso=im.iso,
+                        aperture=im.aperture, sha256=im.sha256)
+
+    def kind(self) -> str:
+        """What this capture is, from its images' roles: ``"checkerboard"`` (views of
+        the checkerboard only: for ``glossrig calibrate camera``), ``"sample"`` (has
+        exposure sequences: for extract, calibrate lamps, diagnose) or ``"calibration"``
+        (calibration images only), ``"empty"`` when it lists no images."""
+        roles = {im.role for im in self.images}
+        if "sequence" in roles:
+            return "sample"
+        if "checkerboard" in roles:
+            return "checkerboard"
+        if "calibration" in roles:
+            return "calibration"
+        return "empty"
+
+    def require_sequences(self, what: str, name: str = "SAMPLE_DIR") -> None:
+        """Stop early, naming the folder, when this capture has no exposure sequences
+        (a checkerboard capture given to extract, say) instead of failing deep inside
+        the pipeline. ``what``: the verb that needs them; ``name``: the argument."""
+        kind = self.kind()
+        if kind == "sample":
+            return
+        if kind == "checkerboard":
+            raise InputError(f"{name} is a checkerboard capture (for glossrig calibrate camera); {what} needs a "
+                             f"sample capture with exposure sequences", path=self.folder)
+        if kind == "calibration":
+            raise InputError(f"{name} holds only calibration images (no exposure sequences); {what} needs a "
+                             f"sample capture with exposure sequences", path=self.folder)
+        raise InputError(f"{name} lists no images; {what} needs a sample capture with exposure sequences",
+                         path=self.folder)
+
     def verify(self, check_hashes: bool = True) -> None:
         """Every listed file exists (and matches its checksum)."""
         for im in self.images:
@@ -160,7 +260,7 @@ class Manifest:
             if not f.exists():
                 raise InputError(f"raw file listed in the manifest is missing", path=f)
             if check_hashes and sha256_file(f) != im.sha256:
-                raise InputError("checksum does not match the manifest (file damaged or replaced)", path=f)
+                raise InputError("checksum does not match capture.json (file changed since capture)", path=f)
 
 
 def capture_complete(folder: str | Path) -> bool:

@@ -63,8 +63,9 @@ import numpy as np
 from . import coverage as cov
 from . import fisher as fi
 from .errors import InputError
+from .progress import progress_enabled
 from .rig import Led
-from .ward import WardParams
+from .ward import WardParams, ward_envelope, ward_geometry
 
 ANISO_TOTAL = 90 * 90 * 360 * 360          # lit samples, no folding (coverage.Convention())
 ISO_TOTAL = 90 * 90 * 180
@@ -319,11 +320,8 @@ def _rows_for(a: dict, lit: np.ndarray, p: WardParams, n_spec: int, n_diff: int)
     pixels where the lobe (widest axis, any rotation) is above 1e-3 of the
     diffuse level, thinned evenly to ``n_spec``; the rest thinned to ``n_diff``."""
     idx = np.flatnonzero(lit)
-    ci = np.cos(np.radians(a["theta_in"][idx]))
-    co = np.cos(np.radians(a["theta_out"][idx]))
-    t2 = np.tan(np.radians(a["theta_h"][idx])) ** 2
-    amax = max(p.alpha_x, p.alpha_y)
-    env = p.rho_s / (4 * np.pi * p.alpha_x * p.alpha_y * np.sqrt(ci * co)) * np.exp(-np.minimum(t2 / amax ** 2, 200.0))
+    env = ward_envelope(ward_geometry(np.radians(a["theta_in"][idx]), np.radians(a["theta_out"][idx]),
+                                      np.radians(a["theta_h"][idx]), 0.0), p)
     level = p.rho_d / np.pi if p.rho_d > 0 else 1e-6 * max(float(env.max(initial=0.0)), 1e-300)
     spec = env > 1e-3 * level
     rows, weights = [], []
@@ -398,7 +396,7 @@ class LocalRunner:
         from tqdm import tqdm
 
         out = []
-        for ch in tqdm(chunks, desc=desc, unit="chunk", disable=not progress, file=_stderr()):
+        for ch in tqdm(chunks, desc=desc, unit="chunk", disable=not progress_enabled(progress), file=_stderr()):
             out.append(evaluate_chunk(setup, ch))
         return out
 
@@ -439,7 +437,7 @@ class DaskRunner:
         futs = [self.client.submit(evaluate_chunk, fut_setup, ch, pure=False) for ch in chunks]
         index = {f.key: k for k, f in enumerate(futs)}
         out = [None] * len(futs)
-        with tqdm(total=len(futs), desc=desc, unit="chunk", disable=not progress, file=_stderr()) as bar:
+        with tqdm(total=len(futs), desc=desc, unit="chunk", disable=not progress_enabled(progress), file=_stderr()) as bar:
             for f in as_completed(futs):
                 out[index[f.key]] = f.result()
                 bar.update(1)

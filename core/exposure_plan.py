@@ -432,3 +432,83 @@ def plan_exposures(rig, material: Material, led_ids: Sequence[int], rotations: S
                         table_s=tuple(sorted(table)), noise_target=noise_target, margin=margin, scale=scale,
                         noise_model=noise.describe(), overhead_s=overhead_s, jitter=jitter, gain_target=gain_target,
                         capture_scale=capture_scale)
+
+
+#: Albedo of the holder marker's white paper (thesis 4.1.4, white paper: the twin renders it
+#: at 0.8); a rig file may give its own as ``[holder.marker] white_albedo``.
+WHITE_PATCH_ALBEDO = 0.8
+
+
+@dataclass(frozen=True)
+class PatchExposure:
+    """The white patch (thesis 4.1.4, eq. 4.45-4.50) under one LED in one planned sequence:
+    its brightest pixel's expected green value at the shortest exposure (``peak_dn``, above
+    black; saturation at ``saturation_dn``) and the longest exposure that keeps it within
+    hdr_ml's usable range (``max_exposure_s``)."""
+
+    led: int
+    shortest_s: float
+    peak_dn: float
+    saturation_dn: float
+    max_exposure_s: float
+
+    @property
+    def saturated(self) -> bool:
+        """True when no exposure of the sequence measures the patch: patch normalisation,
+        and so extract, must then refuse the capture."""
+        return self.shortest_s > self.max_exposure_s
+
+
+def white_patch_exposures(rig, exposures_by_led: dict[int, Sequence[float]], iso: float | None = None,
+                          aperture: float | None = None) -> list[PatchExposure]:
+    """Expected white-patch exposure of each LED's sequence, from the rig description alone:
+    the patch (:func:`glossrig.core.markers.holder_marker_corners`, normal +z of the holder
+    frame, Lambertian with albedo :data:`WHITE_PATCH_ALBEDO`) lit by the LED at its rig
+    position, turned into green photo-electrons with the rig's radiometry
+    (:meth:`glossrig.core.fisher.HdrNoise.electron_rate`) at the sequence's f-number and
+    into DN at its ISO. The brightest point of the patch's corners and centre counts; a
+    sequence whose shortest exposure already passes hdr_ml's usable fraction of
+    saturation leaves the patch unmeasured and the capture unusable for extract."""
+    from .markers import holder_marker_corners
+
+    noise = HdrNoise.from_rig(rig, led_rel=0.0)
+    iso = float(rig.sequence_iso if iso is None else iso)
+    aperture = float(rig.sequence_aperture if aperture is None else aperture)
+    if not (iso > 0 and aperture > 0):
+        raise InputError(f"ISO and f-number must be > 0, got {iso}, {aperture}")
+    sen = rig.section("sensor")
+    e_per_dn = float(sen["electrons_per_dn_iso100"]) * 100.0 / iso
+    span_dn = rig.camera.white_level - max(rig.camera.black_level)
+    sat_e = min(float(sen["full_well_e"]), span_dn * e_per_dn)
+    albedo = float(rig.section("holder")["marker"].get("white_albedo", WHITE_PATCH_ALBEDO))
+    corners = holder_marker_corners(rig, inner=True)
+    pts = np.vstack([corners, corners.mean(axis=0)])
+    # electron_rate is at the rig's sequence f-number; scale to the plan's
+    k_ap = (rig.sequence_aperture / aperture) ** 2
+    out = []
+    for led, times in sorted(exposures_by_led.items()):
+        if not times:
+            continue
+        L = np.asarray(rig.led(int(led)).position, float)
+        d = L - pts
+        dist = np.linalg.norm(d, axis=1)
+        rate = float(np.max(noise.electron_rate(albedo / np.pi, d[:, 2] / dist, dist))) * k_ap
+        t0 = float(min(times))
+        out.append(PatchExposure(led=int(led), shortest_s=t0, peak_dn=min(rate * t0, sat_e) / e_per_dn,
+                                 saturation_dn=sat_e / e_per_dn,
+                                 max_exposure_s=noise.usable_fraction * sat_e / rate if rate > 0 else math.inf))
+    return out
+
+
+def white_patch_warnings(rig, exposures_by_led: dict[int, Sequence[float]], iso: float | None = None,
+                         aperture: float | None = None, where: str = "the plan") -> list[str]:
+    """One message per LED whose planned sequence saturates the white patch at every
+    exposure (:func:`white_patch_exposures`): such a capture is refused by extract."""
+    msgs = []
+    for p in white_patch_exposures(rig, exposures_by_led, iso, aperture):
+        if p.saturated:
+            msgs.append(f"{where}: LED {p.led}: the white patch saturates at every exposure (expected "
+                        f"{p.peak_dn:.0f} DN above black at the shortest, {p.shortest_s:g} s, saturation "
+                        f"{p.saturation_dn:.0f} DN); extract will refuse this capture: add an exposure of at most "
+                        f"{p.max_exposure_s:.3g} s")
+    return msgs

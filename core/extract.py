@@ -35,8 +35,9 @@ from .cylinder import SurfaceSamples, sample_angles, surface_samples
 from .errors import InputError
 from .intrinsics import CameraCalibration
 from .patch import normalise_by_patch
+from .progress import progress_enabled
 from .markers import holder_marker_corners
-from .raw import even_crop, linearize, read_raw
+from .raw import even_crop, linearize
 from .rig import Rig, load_rig
 
 PATCH_SHRINK = 0.2        # keep the inner 60 % of the white patch (away from the red frame)
@@ -110,8 +111,7 @@ def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
     seq = [im for im in man.select("sequence", rotation=geom.rotation) if im.leds == [led]]
     if not seq:
         raise InputError(f"no sequence for LED {led} at rotation {geom.rotation:g} deg", path=man.path)
-    frames = [read_raw(man.folder / im.file, crop=geom.crop, exposure_s=im.exposure_s, iso=im.iso,
-                       aperture=im.aperture) for im in seq]
+    frames = [man.read_raw(im, crop=geom.crop) for im in seq]      # checksums checked
     stack = hdrmod.stack_frames(frames, [im.repeat for im in seq])
     cfa = frames[0].cfa
     if estimator == "ml":
@@ -171,23 +171,39 @@ class Measured:
 
 
 def measure_capture(folder, cam: CameraCalibration, lamps: dict[int, np.ndarray] | None, estimator: str = "ml",
-                    progress: bool = False) -> Measured:
-    """Measure every (block, LED, rotation) of a capture (see :class:`Measured`)."""
+                    progress: bool = False, name: str = "SAMPLE_DIR", what: str = "extract",
+                    store=None, unit_prefix: str = "") -> Measured:
+    """Measure every (block, LED, rotation) of a capture (see :class:`Measured`).
+    ``name`` and ``what`` (the argument and the verb) word the error for a capture
+    with no exposure sequences (a checkerboard capture, say), which stops here.
+
+    ``store`` (a :class:`glossrig.core.checkpoint.WorkStore` fingerprinted with this
+    capture, camera, lamps and estimator) keeps each finished (rotation, LED) unit as
+    ``unit_prefix`` + ``rot<deg>-led<id>`` and reuses the ones it already holds, so an
+    interrupted measurement resumes where it stopped with the same table (units are
+    concatenated in plan order). The geometry of every rotation is always solved:
+    callers use :attr:`Measured.geometry`."""
     from tqdm import tqdm
 
     man = load_manifest(folder)
+    man.require_sequences(what, name)
     if not man.complete:
         raise InputError("capture is not complete (interrupted?): resume it before extracting", path=man.path)
     rig = load_rig(man.rig_path())
     frames = []
     jobs = [(rot, led) for rot in man.rotations()
             for led in sorted({im.leds[0] for im in man.select("sequence", rotation=rot)})]
-    bar = tqdm(total=len(jobs), desc=f"extract {Path(folder).name}", unit="LED", disable=not progress)
+    bar = tqdm(total=len(jobs), desc=f"extract {Path(folder).name}", unit="LED", disable=not progress_enabled(progress))
     geoms = {}
     for rot, led in jobs:
         if rot not in geoms:
             geoms[rot] = rotation_geometry(man, rig, cam, rot)
         g = geoms[rot]
+        unit = f"{unit_prefix}rot{rot:g}-led{led}"
+        if store is not None and store.has(unit):
+            frames.append(store.load(unit))
+            bar.update(1)
+            continue
         vals, var = led_values(man, rig, g, led, estimator)
         s = g.surface
         df = pd.DataFrame({"u": np.floor(s.u).astype(np.int32), "v": np.floor(s.v).astype(np.int32)})
@@ -204,6 +220,8 @@ def measure_capture(folder, cam: CameraCalibration, lamps: dict[int, np.ndarray]
             for k in ANGLE_COLUMNS:
                 df[k] = ang[k]
             df["cos_in"], df["cos_out"] = ang["cos_in"], ang["cos_out"]
+        if store is not None:
+            store.save(unit, df)
         frames.append(df)
         bar.update(1)
     bar.close()
@@ -255,9 +273,14 @@ def diffuse_normalize(sample: pd.DataFrame, reference: pd.DataFrame, albedo: flo
     return res
 
 
-def check_compatible(sample_dir, reference_dir) -> None:
-    """A reference must come from the same rig and hold every (LED, rotation) of the sample."""
+def check_compatible(sample_dir, reference_dir, what: str = "extract") -> None:
+    """Both captures must hold exposure sequences (not a checkerboard capture given by
+    mistake: stopped here, before any image is read); a reference must come from the
+    same rig and hold every (LED, rotation) of the sample. ``what``: the verb, for the
+    error message."""
     s, r = load_manifest(sample_dir), load_manifest(reference_dir)
+    s.require_sequences(what, "SAMPLE_DIR")
+    r.require_sequences(what, "REF_DIR")
     rs, rr = load_rig(s.rig_path()), load_rig(r.rig_path())
     if rs.name != rr.name or rs.raw != rr.raw:
         raise InputError(f"reference was captured with another rig ({rr.name!r} at {rr.path}) than the sample "
@@ -271,12 +294,35 @@ def check_compatible(sample_dir, reference_dir) -> None:
                          path=r.path)
 
 
+def measurement_fingerprint(sample_dir, reference_dir, cam: CameraCalibration, lamps: dict[int, np.ndarray] | None,
+                            files: dict | None = None, **options) -> dict:
+    """What measuring a sample and a reference capture depends on
+    (:func:`glossrig.core.checkpoint.fingerprint`): both manifests, the rig files they
+    name, the camera calibration file, the lamp positions, ``options`` and any further
+    input ``files`` (name -> path) of the caller's run."""
+    from .checkpoint import fingerprint
+
+    ms, mr = load_manifest(sample_dir), load_manifest(reference_dir)
+    lp = None if lamps is None else {str(k): np.asarray(v, float).tolist() for k, v in sorted(lamps.items())}
+    return fingerprint(files={"camera": cam.path or None, "sample_rig": ms.rig_path(), "reference_rig": mr.rig_path(),
+                              **(files or {})},
+                       captures={"sample": sample_dir, "reference": reference_dir},
+                       options={**options, "lamps_mm": lp})
+
+
 def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: dict[int, np.ndarray],
-                    albedo: float = 0.8, estimator: str = "ml", progress: bool = False, plots=None) -> pd.DataFrame:
-    """The full extraction: sample and reference measured alike, then divided (eq. 4.78)."""
+                    albedo: float = 0.8, estimator: str = "ml", progress: bool = False, plots=None,
+                    store=None) -> pd.DataFrame:
+    """The full extraction: sample and reference measured alike, then divided (eq. 4.78).
+
+    ``store``: a :class:`glossrig.core.checkpoint.WorkStore` fingerprinted with
+    :func:`measurement_fingerprint` (and the estimator); every finished LED of either
+    capture is kept there and reused, so an interrupted extraction resumes."""
     check_compatible(sample_dir, reference_dir)
-    s = measure_capture(sample_dir, cam, lamps, estimator=estimator, progress=progress).table
-    r = measure_capture(reference_dir, cam, lamps, estimator=estimator, progress=progress).table
+    s = measure_capture(sample_dir, cam, lamps, estimator=estimator, progress=progress, store=store,
+                        unit_prefix="sample-").table
+    r = measure_capture(reference_dir, cam, lamps, estimator=estimator, progress=progress, name="REF_DIR",
+                        store=store, unit_prefix="reference-").table
     out = diffuse_normalize(s, r, albedo=albedo)
     cols = list(ANGLE_COLUMNS) + ["r", "g", "b", "weight", "u", "v", "led", "rotation"]
     res = out[cols].reset_index(drop=True)

@@ -50,39 +50,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .ward import WardParams
+from .ward import WardParams, ward_geometry, ward_param_jacobian, ward_parts
 
 PARAMS = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
-_EXP_CUT = 200.0
 
 
 def ward_jacobian(theta_in, theta_out, theta_h, phi_h, p: WardParams):
     """Extended Ward value (eq. 4.79) and its derivatives with respect to
-    (rho_d, rho_s, alpha_x, alpha_y, lobe_rotation), shape (n, 5).
-
-    With S the specular term, a = phi_h + lobe_rotation (eq. 4.80) and
-    q = tan^2 th_h (cos^2 a / ax^2 + sin^2 a / ay^2):
-    df/drho_d = 1/pi, df/drho_s = S/rho_s, df/dax = S (2 tan^2 th_h cos^2 a / ax^3 - 1/ax),
-    df/day = S (2 tan^2 th_h sin^2 a / ay^3 - 1/ay), df/drot = S tan^2 th_h sin 2a (1/ax^2 - 1/ay^2).
-    Zero below the horizon, as :func:`glossrig.core.ward.ward_from_angles`."""
-    ti, to, th, ph = np.broadcast_arrays(*(np.asarray(a, float).ravel() for a in (theta_in, theta_out, theta_h, phi_h)))
-    ci, co = np.cos(ti), np.cos(to)
-    valid = (ci > 0) & (co > 0)
-    t2 = np.tan(th) ** 2
-    a = ph + p.lobe_rotation
-    c, s = np.cos(a), np.sin(a)
-    ix2, iy2 = 1.0 / p.alpha_x ** 2, 1.0 / p.alpha_y ** 2
-    q = np.minimum(t2 * (c * c * ix2 + s * s * iy2), _EXP_CUT)
-    base = np.where(valid, np.exp(-q) / (4 * np.pi * p.alpha_x * p.alpha_y * np.sqrt(np.where(valid, ci * co, 1.0))), 0.0)
-    S = p.rho_s * base
-    f = np.where(valid, p.rho_d / np.pi, 0.0) + S
-    J = np.empty((f.size, 5))
-    J[:, 0] = np.where(valid, 1.0 / np.pi, 0.0)
-    J[:, 1] = base
-    J[:, 2] = S * (2 * t2 * c * c * ix2 - 1.0) / p.alpha_x
-    J[:, 3] = S * (2 * t2 * s * s * iy2 - 1.0) / p.alpha_y
-    J[:, 4] = S * t2 * 2 * s * c * (ix2 - iy2)
-    return f, J
+    (rho_d, rho_s, alpha_x, alpha_y, lobe_rotation), shape (n, 5), at flat angle
+    arrays (radians). Zero below the horizon. The project's one evaluation,
+    :func:`glossrig.core.ward.ward_param_jacobian`, for flat angle arrays."""
+    geom = ward_geometry(theta_in, theta_out, theta_h, phi_h)
+    f, parts = ward_parts(geom, p)
+    return f, ward_param_jacobian(geom, p, parts)
 
 
 @dataclass(frozen=True)

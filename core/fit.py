@@ -50,6 +50,11 @@ Departures from the thesis, and why:
   errors are lower bounds. Directions of parameter space the data do not
   constrain (e.g. the rotation of an isotropic lobe, the lobe of a material
   with ``rho_s = 0``) get an infinite standard error instead of a number.
+  These standard errors count only the per-pixel noise of the samples: they
+  exclude the calibration (geometry, lamp positions, reference) and model
+  error, which dominate a real measurement, so they are **not** the
+  measurement's uncertainty. Every channel of fit.json says so in
+  ``stderr_kind`` (:data:`STDERR_KIND`) until an uncertainty budget exists.
 * **Clipping (eq. 6.5).** The thesis clips the measured values at 1.0 and fits
   the unclipped model to them, which pulls the lobe down and wide wherever the
   model exceeds 1. With ``clip`` set, the model is clipped too (a censored fit):
@@ -71,17 +76,17 @@ import numpy as np
 
 from .errors import InputError
 from .samples import LUMINANCE_WEIGHTS, luminance
-from .ward import ALPHA_MAX, WardParams
+from .ward import (ALPHA_MAX, WardGeometry, WardParams, ward_geometry, ward_param_jacobian, ward_parts,
+                   ward_unit_lobes)
 
 PARAM_NAMES = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
 ALPHA_MIN = 1e-4
 CHANNELS = ("luminance", "r", "g", "b")
 WEIGHTINGS = ("mirror", "literal", "none")
 CANONICAL_FORM = "alpha_x >= alpha_y, lobe_rotation in [0, pi) radians"
+#: what the ``<name>_stderr`` values of a fit count (fit.json, the ``glossrig fit`` summary)
+STDERR_KIND = "noise-only (per-pixel noise; excludes calibration and model error)"
 
-# exp(-200) ~ 1e-87: far below any BRDF value, and it keeps the lobe's far
-# tail out of IEEE denormals (which are 10-100x slower in exp, products and SVD).
-_EXP_CUT = 200.0
 _GRID_ALPHAS = np.geomspace(0.002, ALPHA_MAX, 13)
 _GRID_ROTATIONS = np.arange(12) * (np.pi / 12)
 
@@ -203,32 +208,25 @@ def peak_weight(theta_in, phi_in, theta_out, phi_out, theta_d=None, phi_d=None, 
 
 @dataclass
 class _Data:
-    """Per-sample quantities of eq. 4.79 that do not depend on the parameters."""
+    """Per-sample quantities of the objective that do not depend on the parameters:
+    eq. 4.79's geometry (:class:`glossrig.core.ward.WardGeometry`) and the data."""
 
-    t2: np.ndarray      # tan^2 theta_h
-    c2p: np.ndarray     # cos 2 phi_h
-    s2p: np.ndarray     # sin 2 phi_h
-    g: np.ndarray       # 1 / (4 pi sqrt(cos theta_in cos theta_out))
+    geo: WardGeometry
     W: np.ndarray       # residual multiplier sqrt(v) * w (eq. 4.81-4.82)
     y: np.ndarray       # measured values (clipped if clipping)
 
     def take(self, idx) -> "_Data":
-        return _Data(*(getattr(self, k)[idx] for k in ("t2", "c2p", "s2p", "g", "W", "y")))
+        return _Data(self.geo.take(idx), self.W[idx], self.y[idx])
 
     def __len__(self):
         return self.y.size
 
 
 def _make_data(theta_in, theta_out, theta_h, phi_h, values, W, clip) -> _Data:
-    ci = np.cos(np.asarray(theta_in, float))
-    co = np.cos(np.asarray(theta_out, float))
-    g = 1.0 / (4 * np.pi * np.sqrt(np.maximum(ci * co, 1e-12)))
-    th = np.asarray(theta_h, float)
-    ph = np.asarray(phi_h, float)
     y = np.asarray(values, float)
     if clip is not None:
         y = np.minimum(y, clip)
-    return _Data(t2=np.tan(th) ** 2, c2p=np.cos(2 * ph), s2p=np.sin(2 * ph), g=g, W=np.asarray(W, float), y=y)
+    return _Data(geo=ward_geometry(theta_in, theta_out, theta_h, phi_h), W=np.asarray(W, float), y=y)
 
 
 def _internal(p: WardParams) -> np.ndarray:
@@ -237,72 +235,13 @@ def _internal(p: WardParams) -> np.ndarray:
 
 def _model(x: np.ndarray, d: _Data, jac: bool = False):
     """Eq. 4.79 at ``x = (rho_d, rho_s, ln alpha_x, ln alpha_y, rot)`` and, with
-    ``jac``, its derivatives (columns in the order of ``x``):
-
-        df/drho_d = 1/pi,  df/drho_s = S / rho_s,
-        df/dln ax = S (2 tan^2 th_h cos^2 a_n / ax^2 - 1),
-        df/dln ay = S (2 tan^2 th_h sin^2 a_n / ay^2 - 1),
-        df/drot   = S tan^2 th_h sin(2 a_n) (1/ax^2 - 1/ay^2),
-
-    with S the specular term and a_n = phi_h + rot (eq. 4.80). With
-    ``h = cos 2 a_n``: ``cos^2 a_n / ax^2 + sin^2 a_n / ay^2 = A + B h``,
-    ``A = (1/ax^2 + 1/ay^2) / 2``, ``B = (1/ax^2 - 1/ay^2) / 2``. The
-    Jacobian is returned as a Fortran-ordered (n, 5) array (contiguous
-    columns: cheaper to fill, and what LAPACK's SVD in the solver wants)."""
-    f, h, base = _model_parts(x, d)
+    ``jac``, its Fortran-ordered (n, 5) Jacobian (columns in the order of ``x``):
+    the project's one evaluation, :func:`glossrig.core.ward.ward_parts` and
+    :func:`glossrig.core.ward.ward_param_jacobian` with ``log_alpha``."""
+    f, parts = ward_parts(d.geo, x, log_alpha=True)
     if not jac:
         return f
-    return f, _jacobian(x, d, h, base)
-
-
-def _model_parts(x, d: _Data):
-    """f, cos 2 a_n and the specular basis g exp(...) / (ax ay) (see :func:`_model`)."""
-    rho_d, rho_s, lx, ly, rot = (float(v) for v in x)
-    ix2, iy2 = math.exp(-2 * lx), math.exp(-2 * ly)
-    A, B = 0.5 * (ix2 + iy2), 0.5 * (ix2 - iy2)
-    C, Sn = math.cos(2 * rot), math.sin(2 * rot)
-    h = d.c2p * C
-    h -= d.s2p * Sn                         # cos 2 a_n
-    q = h * B
-    q += A
-    q *= d.t2
-    np.minimum(q, _EXP_CUT, out=q)
-    np.negative(q, out=q)
-    base = np.exp(q, out=q)
-    base *= d.g
-    base *= math.exp(-lx - ly)              # g exp(...) / (ax ay)
-    f = base * rho_s
-    f += rho_d / np.pi
-    return f, h, base
-
-
-def _jacobian(x, d: _Data, h, base):
-    """Fortran-ordered (n, 5) Jacobian of eq. 4.79 from :func:`_model_parts`'s pieces."""
-    rho_d, rho_s, lx, ly, rot = (float(v) for v in x)
-    ix2, iy2 = math.exp(-2 * lx), math.exp(-2 * ly)
-    B = 0.5 * (ix2 - iy2)
-    C, Sn = math.cos(2 * rot), math.sin(2 * rot)
-    JT = np.empty((5, base.size))
-    JT[0] = 1.0 / np.pi
-    JT[1] = base
-    S = base * rho_s
-    St2 = S * d.t2
-    r2 = JT[2]
-    np.add(h, 1.0, out=r2)                  # 2 cos^2 a_n
-    r2 *= St2
-    r2 *= ix2
-    r2 -= S
-    r3 = JT[3]
-    np.subtract(1.0, h, out=r3)             # 2 sin^2 a_n
-    r3 *= St2
-    r3 *= iy2
-    r3 -= S
-    r4 = JT[4]
-    np.multiply(d.s2p, C, out=r4)
-    r4 += d.c2p * Sn                        # sin 2 a_n
-    r4 *= St2
-    r4 *= 2 * B
-    return JT.T
+    return f, ward_param_jacobian(d.geo, x, parts, log_alpha=True)
 
 
 def _residual_fn(d: _Data, clip, clip_model):
@@ -314,17 +253,17 @@ def _residual_fn(d: _Data, clip, clip_model):
     last = {}
 
     def fun(x):
-        f, h, base = _model_parts(x, d)
-        last.update(x=np.array(x, float), f=f, h=h, base=base)
+        f, parts = ward_parts(d.geo, x, log_alpha=True)
+        last.update(x=np.array(x, float), f=f, parts=parts)
         fc = np.minimum(f, clip) if censor else f
         return d.W * (fc - d.y)
 
     def jac(x):
         if "x" in last and np.array_equal(last["x"], x):
-            f, h, base = last["f"], last["h"], last["base"]
+            f, parts = last["f"], last["parts"]
         else:
-            f, h, base = _model_parts(x, d)
-        J = _jacobian(x, d, h, base)
+            f, parts = ward_parts(d.geo, x, log_alpha=True)
+        J = ward_param_jacobian(d.geo, x, parts, log_alpha=True)
         J *= d.W[:, None]
         if censor:
             J[f >= clip] = 0.0
@@ -372,9 +311,8 @@ def _nnls2(uu, uv, vv, uz, vz, zz):
 def _grid_search(d: _Data, keep=None):
     """Cost of the best non-negative (rho_d, rho_s) for every grid lobe.
 
-    Per rotation, ``tan^2 th_h (cos^2 a_n / ax^2 + sin^2 a_n / ay^2)`` is an outer
-    sum over the (ax, ay) pairs; the specular basis is scaled by 1/(ax ay) only
-    in the (small) normal-equation sums."""
+    Per rotation, the unit lobes of every (ax, ay) pair come from
+    :func:`glossrig.core.ward.ward_unit_lobes` as one (pairs, samples) array."""
     if keep is not None:
         d = d.take(keep)
     W2 = d.W ** 2
@@ -386,19 +324,11 @@ def _grid_search(d: _Data, keep=None):
     out = np.empty((len(lobes), 3))
     for rot in np.unique(lobes[:, 2]):
         rows = np.flatnonzero(lobes[:, 2] == rot)
-        ax, ay = lobes[rows, 0], lobes[rows, 1]
-        c2 = 0.5 * (1 + d.c2p * math.cos(2 * rot) - d.s2p * math.sin(2 * rot))   # cos^2(phi_h + rot)
-        Q = np.multiply.outer(1 / ax ** 2, d.t2 * c2)
-        Q += np.multiply.outer(1 / ay ** 2, d.t2 * (1 - c2))
-        np.minimum(Q, _EXP_CUT, out=Q)
-        np.negative(Q, out=Q)
-        np.exp(Q, out=Q)
-        Q *= d.g
-        s = 1 / (ax * ay)
-        uv = (Q @ W2) * s / np.pi
-        vz = (Q @ W2y) * s
+        Q = ward_unit_lobes(d.geo, lobes[rows, 0], lobes[rows, 1], float(rot))
+        uv = (Q @ W2) / np.pi
+        vz = Q @ W2y
         np.square(Q, out=Q)
-        vv = (Q @ W2) * s * s
+        vv = Q @ W2
         a, b, cost = _nnls2(uu, uv, vv, uz, vz, zz)
         out[rows] = np.stack([a, b, cost], axis=1)
     return lobes, out
@@ -524,7 +454,8 @@ class WardFit:
 
     def to_json(self) -> dict:
         """Plain-JSON dict: the parameters, ``<name>_stderr`` for each (``null``
-        when infinite), covariance, residual statistics and fit settings."""
+        when infinite; noise-only, named in ``stderr_kind``), covariance, residual
+        statistics and fit settings."""
         def num(v):
             v = float(v)
             return v if math.isfinite(v) else None
@@ -532,6 +463,7 @@ class WardFit:
         d = {k: float(getattr(self.params, k)) for k in PARAM_NAMES}
         for k in PARAM_NAMES:
             d[f"{k}_stderr"] = num(self.stderr[k])
+        d["stderr_kind"] = STDERR_KIND          # the stderr and covariance are not the measurement's uncertainty
         d["covariance"] = [[num(v) for v in row] for row in self.covariance]
         d["covariance_order"] = list(PARAM_NAMES)
         d["residuals"] = {k: num(v) if isinstance(v, float) else v for k, v in self.residuals.items()}
@@ -855,6 +787,11 @@ class MaterialFit:
                "source": self.source, "options": self.options}
         for k, f in self.fits.items():
             out[k] = f.to_json()
+        if "luminance" in self.fits:
+            # gloss as industry measures it (ISO 2813 / ASTM D523 GU, ASTM E430 haze and DOI), issue 17
+            from .gloss import gloss_from_ward
+
+            out["luminance"]["gloss"] = gloss_from_ward(self.fits["luminance"].params)
         out["shared_lobe_rgb"] = self.shared_rgb
         out["mitsuba"] = mitsuba_material(self)
         return out

@@ -11,11 +11,12 @@
   ``phi_h`` (density plus binned median and quartiles): structure in them is
   what the model misses;
 * :func:`plot_measured_vs_fitted` - density of measured against fitted values;
-* :func:`render_preview` - a sphere of the fitted material rendered with
-  Mitsuba 3 through the twin's ``glossrig_ward`` BSDF (imported lazily:
-  ``glossrig.core`` itself knows nothing of Mitsuba, design.md).
+The preview sphere of the fitted material (``render_preview``) is rendered with
+Mitsuba 3 and lives in :mod:`glossrig.twin.material_renders` (same name and
+arguments): ``glossrig.core`` imports neither Mitsuba nor the twin (design.md).
 
-All figures use matplotlib's Agg backend and are written as PNG.
+All figures use matplotlib's Agg backend, constrained layout (no overlapping
+labels) and are written as PNG.
 """
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ from .fit import channel_values
 from .ward import WardParams, ward_from_angles
 
 _MAX_POINTS = 60_000
+_DPI = 120
 
 
 def _plt():
@@ -37,6 +39,23 @@ def _plt():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def _ticks(n):
+    from matplotlib.ticker import MaxNLocator as _M
+
+    return _M(n)
+
+
+def _log_ticks(axis):
+    """Labels at 1, 2 and 5 times the powers of ten and no labelled minor ticks: on a
+    log axis spanning about a decade matplotlib labels the minor ticks too, and on a
+    horizontal axis their labels (``2x10^-2 3x10^-2 ...``) run into each other."""
+    from matplotlib.ticker import LogFormatterSciNotation, LogLocator, NullFormatter
+
+    axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(LogFormatterSciNotation(labelOnlyBase=False))
+    axis.set_minor_formatter(NullFormatter())
 
 
 def _fitted(df, p: WardParams, clip=None, clip_model=True):
@@ -70,7 +89,7 @@ def plot_lobe_slices(df, fit, path, *, channel: str | None = None, half_width_de
     th = np.rad2deg(np.asarray(df["theta_h"], float))
     hw = np.deg2rad(half_width_deg)
     xlim = float(np.clip(8 * np.rad2deg(np.arctan(p.alpha_x)), 6.0, 90.0))   # ~8 lobe widths
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True, layout="constrained")
     for ax, centre, name, alpha in ((axes[0], 0.0, "x (wide) axis", p.alpha_x),
                                     (axes[1], np.pi / 2, "y (narrow) axis", p.alpha_y)):
         pos, neg = _angdist(an, centre) < hw, _angdist(an, centre + np.pi) < hw
@@ -92,9 +111,8 @@ def plot_lobe_slices(df, fit, path, *, channel: str | None = None, half_width_de
     axes[0].set_ylabel(f"BRDF, {channel} (1/sr)")
     axes[0].legend(markerscale=5, loc="upper right")
     fig.suptitle(f"{channel}: rho_d={p.rho_d:.4g} rho_s={p.rho_s:.4g} rotation={p.lobe_rotation:.3f} rad")
-    fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=_DPI)
     plt.close(fig)
     return path
 
@@ -115,7 +133,8 @@ def plot_rig_slices(df, fit, path, *, channel: str | None = None) -> Path:
     n = max(1, len(rots))
     ncol = min(n, 4)
     nrow = int(np.ceil(n / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(3.6 * ncol + 1, 3.3 * nrow), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.4 * ncol + 1, 3.8 * nrow + 0.5), squeeze=False, sharey=True,
+                             layout="constrained")
     cmap = plt.get_cmap("viridis")
     rot_col = np.asarray(df["rotation"], float)
     led_col = np.asarray(df["led"])
@@ -133,15 +152,15 @@ def plot_rig_slices(df, fit, path, *, channel: str | None = None) -> Path:
         ax.set_yscale("log")
         ax.set_title(f"rotation {rot:g} deg, column u={u0}", fontsize=9)
         ax.set_xlabel("pixel row v (around the cylinder)")
+        ax.xaxis.set_major_locator(_ticks(5))
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
     axes[0, 0].set_ylabel(f"BRDF, {channel} (1/sr)")
     axes[0, 0].legend(fontsize=6, ncol=2)
     fig.suptitle(f"{channel}: measured (dots) and fitted (lines)")
-    fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=_DPI)
     plt.close(fig)
     return path
 
@@ -169,9 +188,10 @@ def plot_residuals(df, fit, path, *, channel: str | None = None) -> Path:
     ph = np.rad2deg(np.asarray(df["phi_h"], float))[ok]
     rel = rel[ok]
     lim = max(0.05, float(np.percentile(np.abs(rel), 99))) if rel.size else 1.0
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), layout="constrained")
     for ax, x, name, bins in ((axes[0], th, r"$\theta_h$ (deg)", np.linspace(0, 90, 46)),
                               (axes[1], ph, r"$\phi_h$ (deg)", np.linspace(0, 360, 73))):
+        ax.xaxis.set_major_locator(_ticks(7))
         if x.size:
             ax.hexbin(x, np.clip(rel, -lim, lim), gridsize=70, bins="log", cmap="Greys", mincnt=1)
             c, q = _binned(x, rel, bins)
@@ -187,9 +207,8 @@ def plot_residuals(df, fit, path, *, channel: str | None = None) -> Path:
     st = fit.residuals
     fig.suptitle(f"{channel}: residuals  (rms relative {st.get('rms_relative', float('nan')):.3g}, "
                  f"median |rel| {st.get('median_abs_relative', float('nan')):.3g}, n={st.get('n', 0)})")
-    fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=_DPI)
     plt.close(fig)
     return path
 
@@ -201,17 +220,20 @@ def plot_measured_vs_fitted(df, fit, path, *, channel: str | None = None) -> Pat
     y = _measured(df, channel, fit.clip)
     f = _fitted(df, fit.params, fit.clip, fit.clip_model)
     ok = (y > 0) & (f > 0)
-    fig, ax = plt.subplots(figsize=(5, 5))
+    fig, ax = plt.subplots(figsize=(6.6, 5.8), layout="constrained")
     if ok.any():
-        ax.hexbin(f[ok], y[ok], gridsize=80, bins="log", xscale="log", yscale="log", cmap="viridis", mincnt=1)
+        hb = ax.hexbin(f[ok], y[ok], gridsize=80, bins="log", xscale="log", yscale="log", cmap="viridis", mincnt=1)
+        fig.colorbar(hb, ax=ax, label="samples per hexagon")
         lo, hi = float(min(f[ok].min(), y[ok].min())), float(max(f[ok].max(), y[ok].max()))
         ax.plot([lo, hi], [lo, hi], "r-", lw=0.8)
+    if ok.any():
+        _log_ticks(ax.xaxis)
+        _log_ticks(ax.yaxis)
     ax.set_xlabel("fitted BRDF (1/sr)")
     ax.set_ylabel("measured BRDF (1/sr)")
-    ax.set_title(f"{channel}: measured vs fitted", fontsize=10)
-    fig.tight_layout()
+    ax.set_title(f"{channel}: measured vs fitted (red: identity)", fontsize=10)
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=_DPI)
     plt.close(fig)
     return path
 
@@ -232,52 +254,3 @@ def write_plots(df, material_fit, out_dir, *, channels=None) -> list[Path]:
         written.append(plot_measured_vs_fitted(df, fit, out / f"{c}_measured_vs_fitted.png"))
     return written
 
-
-def preview_scene(material: dict, to_world, size: int = 160, spp: int = 64, key: float = 200.0,
-                  env: float = 0.6) -> dict:
-    """Mitsuba scene dict: a unit sphere of ``material`` lit by a point key light
-    (intensity ``key``, W/sr) from the upper left and a uniform environment of
-    radiance ``env``; camera at ``to_world``. The defaults expose a diffuse
-    albedo of ~0.05 (the thesis's scratched sheets) as a visible dark grey; the
-    exposure is fixed, so previews of different materials compare.)"""
-    return {
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": 3},
-        "sensor": {
-            "type": "perspective", "fov": 30,
-            "to_world": to_world,
-            "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "gaussian"}},
-            "sampler": {"type": "independent", "sample_count": spp},
-        },
-        "sphere": {"type": "sphere", "radius": 1.0, "bsdf": material},
-        "key": {"type": "point", "position": [-3.0, 3.0, 4.0], "intensity": {"type": "rgb", "value": [key] * 3}},
-        "env": {"type": "constant", "radiance": {"type": "rgb", "value": [env] * 3}},
-    }
-
-
-def render_preview(material: dict, path, *, size: int = 160, spp: int = 64, seed: int = 0) -> Path:
-    """Render a sphere of the fitted material (``glossrig.core.export`` dict)
-    through the twin's ``glossrig_ward`` BSDF and write an sRGB PNG.
-
-    The sphere's tangent is Mitsuba's ``dp/du`` (around its pole axis, +y here),
-    so the anisotropic highlight stretches along or across the latitude lines
-    according to ``lobe_rotation``. Raises :class:`InputError` when the twin's
-    BSDF (or Mitsuba) is not available."""
-    try:
-        from glossrig.twin.mitsuba_env import mitsuba
-        mi = mitsuba()
-    except ImportError as e:
-        raise InputError(f"twin Ward BSDF not available ({e})") from None
-    from PIL import Image
-
-    cam = mi.ScalarTransform4f().look_at(origin=[0, 0, 5.2], target=[0, 0, 0], up=[0, 1, 0])
-    scene = preview_scene(material, cam, size, spp)
-    try:
-        img = np.array(mi.render(mi.load_dict(scene), seed=seed), dtype=np.float64)[..., :3]
-    except Exception as e:  # Mitsuba reports plugin/parameter problems as RuntimeError
-        raise InputError(f"preview render failed: {e}") from None
-    img = np.clip(img, 0, 1)
-    srgb = np.where(img <= 0.0031308, 12.92 * img, 1.055 * np.power(img, 1 / 2.4) - 0.055)
-    path = Path(path)
-    Image.fromarray((srgb * 255 + 0.5).astype(np.uint8)).save(path)
-    return path

@@ -28,10 +28,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .capture import atomic_write_json, load_manifest, now_iso, sha256_file
+from .capture import atomic_write_json, load_manifest, now_iso
 from .demosaic import demosaic
 from .errors import InputError
-from .raw import linearize, read_raw
+from .progress import progress_enabled
+from .raw import linearize
 
 #: Fewest usable checkerboard views accepted (OpenCV needs 3 for this model;
 #: a handful more keep the principal point and k3 from running away).
@@ -164,14 +165,12 @@ def calibrate_intrinsics(checker_dir: str | Path, inner: tuple[int, int] | None 
 
     size = None
     found, skipped = [], []
-    for im in tqdm(views, desc="checkerboard", unit="view", disable=not progress):
+    for im in tqdm(views, desc="checkerboard", unit="view", disable=not progress_enabled(progress)):
         path = man.folder / im.file
         if not path.is_file():
             raise InputError("checkerboard image listed in the manifest is missing", path=path)
-        digest = sha256_file(path)
-        if digest != im.sha256:
-            raise InputError("checksum does not match the manifest (file damaged or replaced)", path=path)
-        frame = read_raw(path, exposure_s=im.exposure_s, iso=im.iso, aperture=im.aperture)
+        frame = man.read_raw(im)            # checks the manifest's sha256
+        digest = im.sha256
         w, h = frame.full_size
         if size is None:
             size = (w, h)

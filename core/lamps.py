@@ -138,11 +138,22 @@ def refine_with_diffuse(lamp0: np.ndarray, points: np.ndarray, normals: np.ndarr
 
 
 def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = True) -> dict:
-    """Lamp position of every LED sequenced in a capture of a specular sample."""
+    """Lamp position of every LED sequenced in a capture of a specular sample.
+
+    A capture that cannot serve stops before any image is read: one without exposure
+    sequences (a checkerboard capture) or one whose manifest labels a Lambertian
+    material (``lambert:...``: no highlight to find the lamp from)."""
+    from .capture import load_manifest
     from .extract import measure_capture
     from .rig import load_rig
 
-    meas = measure_capture(specular_dir, cam, lamps=None, progress=progress)
+    man = load_manifest(specular_dir)
+    man.require_sequences("calibrate lamps", "SPECULAR_DIR")
+    if str(man.material).strip().lower().startswith("lambert"):
+        raise InputError(f"SPECULAR_DIR is a capture of a diffuse material ({man.material}); calibrate lamps needs "
+                         f"a capture of a specular sample (a highlight per LED)", path=man.folder)
+    meas = measure_capture(specular_dir, cam, lamps=None, progress=progress, name="SPECULAR_DIR",
+                           what="calibrate lamps")
     df = meas.table
     rig = load_rig(meas.rig_path)
     lamps, spreads, highlight, stats = {}, {}, {}, {}

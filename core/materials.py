@@ -1,9 +1,14 @@
 """Material descriptions: what a sample is made of, as data.
 
 A material spec (``glossrig simulate --material``) is one of
-``ward:rho_d=..,rho_s=..,alpha_x=..,alpha_y=..,lobe_rotation=..``,
+``ward:rho_d=..,rho_s=..,alpha_x=..,alpha_y=..,lobe_rotation=..`` (lobe_rotation in
+radians, or with a unit: ``140deg``, ``2.44rad``; every value is range-checked by
+:func:`glossrig.core.ward.check_physical`: rho_d in [0, 1], rho_s >= 0,
+rho_d + rho_s <= 1, 0 < alpha <= 0.5 as in thesis Table 4.2, |lobe_rotation| <= 2 pi),
 ``lambert:ALBEDO``, ``measured:PATH`` (an RGL ``.bsdf`` file, Dupuy & Jakob 2018)
-or the name of a file in ``scenes/materials``.
+or the name of a file in ``scenes/materials`` (the packaged scenes,
+:func:`glossrig.core.resources.scenes_dir`, so the names work wherever glossrig is
+installed and from any folder).
 """
 from __future__ import annotations
 
@@ -11,11 +16,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import InputError
-from .rig import SCENES_DIR
-from .ward import WardParams
+from .resources import scenes_dir
+from .ward import WardParams, check_physical, parse_angle
 from .toml_input import read_toml
 
-MATERIALS_DIR = SCENES_DIR / "materials"
+#: the packaged material descriptions (one TOML file per name)
+MATERIALS_DIR = scenes_dir() / "materials"
 
 
 @dataclass(frozen=True)
@@ -38,6 +44,7 @@ class Material:
 
 
 def material_names() -> list[str]:
+    """The names ``--material`` accepts for the packaged material files."""
     return sorted(p.stem for p in MATERIALS_DIR.glob("*.toml"))
 
 
@@ -46,10 +53,12 @@ def _from_table(d: dict, label: str, where) -> Material:
     if kind == "ward":
         try:
             w = WardParams(**{k: float(d[k]) for k in ("rho_d", "rho_s", "alpha_x", "alpha_y")},
-                           lobe_rotation=float(d.get("lobe_rotation", 0.0)))
+                           lobe_rotation=parse_angle(d.get("lobe_rotation", 0.0)))
         except KeyError as e:
             raise InputError(f"ward material lacks {e.args[0]}", path=where) from None
-        return Material("ward", label, ward=w)
+        except (TypeError, ValueError) as e:
+            raise InputError(f"ward material: {e}", path=where) from None
+        return Material("ward", label, ward=check_physical(w, where=where, what="ward material"))
     if kind == "lambert":
         return lambert(float(d.get("albedo", -1)), label)
     if kind == "measured":

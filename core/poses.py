@@ -503,9 +503,9 @@ def calibrate_capture(capture_dir: str | Path, camera_json: str | Path, rotation
         corners_px: holder (8, 2), cylinder (12, 2)
         per_rotation: {rotation: {...}} when the capture has several calibration images
     """
-    from .capture import load_manifest, sha256_file
+    from .capture import load_manifest
     from .intrinsics import load_camera
-    from .raw import linearize, read_raw
+    from .raw import linearize
     from .rig import load_rig
 
     man = load_manifest(capture_dir)
@@ -524,10 +524,8 @@ def calibrate_capture(capture_dir: str | Path, camera_json: str | Path, rotation
         path = man.folder / im.file
         if not path.is_file():
             raise InputError("calibration image listed in the manifest is missing", path=path)
-        digest = sha256_file(path)
-        if digest != im.sha256:
-            raise InputError("checksum does not match the manifest (file damaged or replaced)", path=path)
-        frame = read_raw(path, exposure_s=im.exposure_s, iso=im.iso, aperture=im.aperture)
+        frame = man.read_raw(im)            # checks the manifest's sha256
+        digest = im.sha256
         camera.check_size(frame.full_size, path)
         lin = linearize(frame)
         res = marker_poses(lin, frame.cfa, rig, camera.K, camera.dist, str(path), refine=refine,

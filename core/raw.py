@@ -22,6 +22,8 @@ Demosaicing lives in :mod:`glossrig.core.demosaic` and is re-exported here.
 """
 from __future__ import annotations
 
+import hashlib
+import io
 import math
 from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
@@ -165,14 +167,15 @@ def _exif_lookup(page) -> dict:
     return out
 
 
-def _tiff_info(path: Path) -> tuple[ExifInfo, str | None, str | None]:
+def _tiff_info(path: Path, data: bytes | None = None) -> tuple[ExifInfo, str | None, str | None]:
     """EXIF info from the TIFF structure, plus two diagnoses: ``truncated``
     (the image data runs past the end of the file: certainly broken) and
     ``unparsed`` (tifffile could not read the structure: the file may still
-    be a raw format LibRaw knows, so only LibRaw's verdict is final)."""
-    size = path.stat().st_size
+    be a raw format LibRaw knows, so only LibRaw's verdict is final).
+    ``data``: the file's bytes when the caller has already read them."""
+    size = path.stat().st_size if data is None else len(data)
     try:
-        with tifffile.TiffFile(path) as tf:
+        with tifffile.TiffFile(path if data is None else io.BytesIO(data)) as tf:
             tags = _exif_lookup(tf.pages[0])
             # Truncation check: every strip/tile of every IFD (and SubIFD) must
             # lie inside the file. LibRaw notices too, but says only "I/O error".
@@ -271,7 +274,7 @@ def _agree(name: str, from_file: float | None, given: float | None, rel_tol: flo
 
 def read_raw(path: str | Path, crop: tuple[int, int, int, int] | None = None, *,
              exposure_s: float | None = None, iso: float | None = None, aperture: float | None = None,
-             timestamp: datetime | None = None, rel_tol: float = 0.1) -> RawFrame:
+             timestamp: datetime | None = None, rel_tol: float = 0.1, sha256: str | None = None) -> RawFrame:
     """Decode a raw file (DNG, NEF, ... anything LibRaw reads with a 2x2
     Bayer CFA) into a :class:`RawFrame`.
 
@@ -284,6 +287,13 @@ def read_raw(path: str | Path, crop: tuple[int, int, int, int] | None = None, *,
     1/60 s stand for the table's 0.0166 s). A file with no exposure time,
     and none given, is an error: HDR merging (thesis 4.3.3) needs it.
 
+    ``sha256``: the checksum the capture manifest recorded for this file. The
+    file is then read into memory once, hashed and decoded from those same
+    bytes, so a file changed since capture (a flipped byte decodes silently
+    into wrong pixel values) stops here instead of reaching the results.
+    :meth:`glossrig.core.capture.Manifest.read_raw` passes it for every
+    capture image.
+
     The mosaic is in sensor orientation: the file's orientation flag is not
     applied (the rig's geometry is calibrated in sensor pixels).
     """
@@ -292,11 +302,16 @@ def read_raw(path: str | Path, crop: tuple[int, int, int, int] | None = None, *,
         raise InputError("raw file not found", path=path)
     if path.stat().st_size == 0:
         raise InputError("raw file is empty", path=path)
-    info, truncated, unparsed = _tiff_info(path)
+    data = None
+    if sha256 is not None:
+        data = path.read_bytes()
+        if hashlib.sha256(data).hexdigest() != str(sha256).lower():
+            raise InputError("checksum does not match capture.json (file changed since capture)", path=path)
+    info, truncated, unparsed = _tiff_info(path, data)
     if truncated:
         raise InputError(truncated, path=path)
     try:
-        with rawpy.imread(str(path)) as raw:
+        with rawpy.imread(str(path) if data is None else io.BytesIO(data)) as raw:
             pattern = raw.raw_pattern
             desc = raw.color_desc.decode("ascii", "replace")
             if pattern is None or pattern.shape != (2, 2) or raw.num_colors != 3:

@@ -69,7 +69,8 @@ import numpy as np
 from scipy.optimize import least_squares, minimize, minimize_scalar
 
 from .errors import InputError
-from .ward import ALPHA_MAX, WardParams, ward_from_angles
+from .ward import (ALPHA_MAX, LOBE_ROTATION_MAX, WardParams, check_physical, ward_from_angles, ward_geometry,
+                   ward_param_jacobian)
 
 KIND = "glossrig.reproduction_model"
 SCHEMA_VERSION = 1
@@ -169,7 +170,9 @@ def _numeric(df, col: str, path, what: str) -> np.ndarray:
 def load_ward_table(path) -> dict[str, WardParams]:
     """Ward parameters per name from a CSV with columns ``name, rho_d, rho_s,
     alpha_x, alpha_y[, lobe_rotation]`` (radians), ``#`` comments allowed
-    (the layout of ``ward_params.csv``, thesis Table 9.1)."""
+    (the layout of ``ward_params.csv``, thesis Table 9.1). Every row is range-checked
+    (:func:`glossrig.core.ward.check_physical`); a lobe_rotation column holding values
+    beyond 2 pi is refused as degrees, naming the file and column."""
     df = _read_csv(path, "Ward parameter")
     need = ["name", "rho_d", "rho_s", "alpha_x", "alpha_y"]
     missing = [c for c in need if c not in df.columns]
@@ -179,6 +182,11 @@ def load_ward_table(path) -> dict[str, WardParams]:
     cols = {c: _numeric(df, c, path, "Ward parameter table") for c in need[1:]}
     rot = (_numeric(df, "lobe_rotation", path, "Ward parameter table") if "lobe_rotation" in df.columns
            else np.zeros(len(df)))
+    if np.any(np.abs(rot) > LOBE_ROTATION_MAX):
+        i = int(np.flatnonzero(np.abs(rot) > LOBE_ROTATION_MAX)[0])
+        raise InputError(f"column 'lobe_rotation' holds {rot[i]:g} (row {i + 1}), beyond 2 pi: the column looks like "
+                         f"degrees, but lobe_rotation is in radians; convert it (radians = degrees * pi / 180)",
+                         path=path)
     out: dict[str, WardParams] = {}
     for i, name in enumerate(df["name"].astype(str)):
         key = sample_key(name)
@@ -187,7 +195,8 @@ def load_ward_table(path) -> dict[str, WardParams]:
         if key in out:
             raise InputError(f"Ward parameter table: duplicate name {name!r}", path=path)
         try:
-            out[key] = WardParams(*(float(cols[c][i]) for c in need[1:]), lobe_rotation=float(rot[i]))
+            out[key] = check_physical(WardParams(*(float(cols[c][i]) for c in need[1:]), lobe_rotation=float(rot[i])),
+                                      what="Ward parameters")
         except InputError as e:
             raise InputError(f"row {i + 1} ({name}): {e}", path=path) from None
     return out
@@ -315,28 +324,10 @@ def ward_values(p: WardParams, a: AngleSet) -> np.ndarray:
 
 
 def ward_gradient(p: WardParams, a: AngleSet) -> np.ndarray:
-    """``(N, 5)`` derivatives of eq. 4.79 by (rho_d, rho_s, alpha_x, alpha_y, lobe_rotation).
-
-    With S the specular term, E its exponent and a_n = phi_h + lobe_rotation:
-    dS/drho_s = S / rho_s, dS/dalpha_x = S (2 tan^2 th_h cos^2 a_n / alpha_x^3 - 1 / alpha_x),
-    dS/dalpha_y likewise with sin^2, dS/drot = -S tan^2 th_h sin(2 a_n) (1/alpha_y^2 - 1/alpha_x^2).
-    Zero below the horizon, like :func:`glossrig.core.ward.ward_from_angles`."""
-    ci, co = np.cos(a.theta_in), np.cos(a.theta_out)
-    valid = (ci > 0) & (co > 0)
-    an = a.phi_h + p.lobe_rotation
-    t2 = np.tan(a.theta_h) ** 2
-    c2, s2 = np.cos(an) ** 2, np.sin(an) ** 2
-    ax, ay = p.alpha_x, p.alpha_y
-    unit = np.exp(-t2 * (c2 / ax ** 2 + s2 / ay ** 2)) / (4 * np.pi * ax * ay * np.sqrt(np.where(valid, ci * co, 1.0)))
-    spec = p.rho_s * unit
-    g = np.empty((len(a), 5))
-    g[:, 0] = 1.0 / np.pi
-    g[:, 1] = unit
-    g[:, 2] = spec * (2 * t2 * c2 / ax ** 3 - 1 / ax)
-    g[:, 3] = spec * (2 * t2 * s2 / ay ** 3 - 1 / ay)
-    g[:, 4] = -spec * t2 * np.sin(2 * an) * (1 / ay ** 2 - 1 / ax ** 2)
-    g[~valid] = 0.0
-    return g
+    """``(N, 5)`` derivatives of eq. 4.79 by (rho_d, rho_s, alpha_x, alpha_y, lobe_rotation),
+    zero below the horizon: the project's one evaluation,
+    :func:`glossrig.core.ward.ward_param_jacobian`."""
+    return ward_param_jacobian(ward_geometry(a.theta_in, a.theta_out, a.theta_h, a.phi_h), p)
 
 
 def clip_values(x: np.ndarray, level: float | None) -> np.ndarray:

@@ -14,10 +14,13 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .resources import resolve_input, scenes_dir
 from .toml_input import read_toml
 
+#: the folder holding core/: the checkout's root, or site-packages/glossrig when installed
 REPO_ROOT = Path(__file__).resolve().parent.parent
-SCENES_DIR = REPO_ROOT / "scenes"
+#: the packaged scenes (glossrig.scenes: the checkout's scenes/ or the installed copy)
+SCENES_DIR = scenes_dir()
 ROWS = {"upper": 1.0, "middle": 0.0, "lower": -1.0}
 
 
@@ -156,8 +159,10 @@ def led_position(angle_deg: float, row: str, distance: float, row_offset: float)
 
 
 def load_rig(path: str | Path) -> Rig:
-    """Load and validate a rig TOML file."""
-    path = Path(path)
+    """Load and validate a rig TOML file. A relative ``path`` is looked for in the current
+    folder, then among the packaged scenes (:func:`glossrig.core.resources.resolve_input`:
+    ``scenes/thesis_rig.toml`` and ``thesis_rig.toml`` load from any folder)."""
+    path = resolve_input(path, "rig file")
     raw = read_toml(path, "rig file")
     p = str(path)
     cyl = _get(raw, "cylinder", p, dict)
@@ -233,4 +238,5 @@ def load_rig(path: str | Path) -> Rig:
 
 
 def default_rig_path() -> Path:
+    """The thesis rig among the packaged scenes (found wherever glossrig is installed)."""
     return SCENES_DIR / "thesis_rig.toml"

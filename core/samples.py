@@ -159,14 +159,50 @@ def read_samples(path: str | Path) -> pd.DataFrame:
         df = table.to_pandas()
     except (pa.ArrowException, ValueError, TypeError) as e:
         raise InputError(f"cannot convert the table ({e})", path=path) from None
-    return validate_samples(df, path)
+    out = validate_samples(df, path)
+    out.attrs["provenance"] = _provenance_of(table.schema.metadata, path)
+    return out
 
 
-def write_samples(df: pd.DataFrame, path: str | Path, *, overwrite: bool = True) -> Path:
+def _provenance_of(meta: dict | None, path) -> dict | None:
+    """The provenance JSON of a Parquet schema's metadata (None when not recorded)."""
+    import json
+
+    from .provenance import PARQUET_KEY
+
+    raw = (meta or {}).get(PARQUET_KEY)
+    if raw is None:
+        return None
+    try:
+        return json.loads(raw)
+    except (ValueError, UnicodeDecodeError) as e:
+        raise InputError(f"unreadable provenance in the schema metadata ({e})", path=path) from None
+
+
+def read_provenance(path: str | Path) -> dict | None:
+    """The provenance :func:`write_samples` recorded in a samples file (schema metadata
+    ``glossrig.provenance``; see :mod:`glossrig.core.provenance`), without reading the rows.
+    None for a table written without one."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    path = Path(path)
+    try:
+        meta = pq.read_schema(path).metadata
+    except (pa.ArrowException, OSError, ValueError) as e:
+        raise InputError(f"not a readable Parquet file ({e})", path=path) from None
+    return _provenance_of(meta, path)
+
+
+def write_samples(df: pd.DataFrame, path: str | Path, *, overwrite: bool = True,
+                  provenance: dict | None = None) -> Path:
     """Validate ``df`` and write it as Parquet (zstd), atomically: on any error
     nothing is written and an existing file is left untouched.
 
-    The file's schema metadata records ``glossrig.format = glossrig-samples/1``.
+    The file's schema metadata records ``glossrig.format = glossrig-samples/1`` and,
+    when given, ``glossrig.provenance`` = the JSON of ``provenance`` (what the table was
+    made from: :func:`glossrig.core.provenance.provenance`; ``read_samples`` returns it
+    as ``df.attrs["provenance"]``, :func:`read_provenance` alone).
     With ``overwrite=False`` an existing file is an error."""
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -183,6 +219,12 @@ def write_samples(df: pd.DataFrame, path: str | Path, *, overwrite: bool = True)
     meta = dict(table.schema.metadata or {})
     meta[b"glossrig.format"] = FORMAT.encode()
     meta[b"glossrig.angle_unit"] = b"radian"
+    if provenance is not None:
+        import json
+
+        from .provenance import PARQUET_KEY
+
+        meta[PARQUET_KEY] = json.dumps(provenance, sort_keys=True, allow_nan=False).encode()
     table = table.replace_schema_metadata(meta)
     buf = io.BytesIO()
     pq.write_table(table, buf, compression="zstd")

@@ -1,7 +1,9 @@
-"""Reading the project's TOML inputs (rig descriptions, materials, machine descriptions)
-with errors that name the file and the problem (design.md, "bad input")."""
+"""Reading the project's TOML and JSON inputs (rig descriptions, materials, machine
+descriptions; fits, reproduction models, calibrations) with errors that name the file
+and the problem (design.md, "bad input")."""
 from __future__ import annotations
 
+import json
 import tomllib
 from pathlib import Path
 
@@ -24,3 +26,23 @@ def read_toml(path: str | Path, what: str) -> dict:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise InputError(f"{what} is not valid TOML: {e}", path=path) from None
+
+
+def read_json(path: str | Path, what: str):
+    """The parsed JSON document of ``path``; errors name the file and ``what`` it should
+    be: ``read_json("fit.json", "fit file")`` on a missing file raises
+    ``InputError("fit.json: fit file not found")``; a folder, an unreadable file and
+    invalid JSON (``"... is not readable JSON (reason)"``) likewise."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise InputError(f"{what} not found", path=path) from None
+    except IsADirectoryError:
+        raise InputError(f"is a directory, expected a {what}", path=path) from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{what} is not readable JSON ({e})", path=path) from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise InputError(f"{what} is not readable JSON ({e})", path=path) from None

@@ -12,6 +12,7 @@ pipeline never reads.
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Iterable
 
@@ -21,6 +22,9 @@ from glossrig.core.errors import InputError
 from .camera import ShotInfo, confirm_shot
 from .errors import CameraError
 from .plan import CapturePlan
+
+
+_CLAMPED = "negative_radiance_pixels_clamped"
 
 
 class TwinLights:
@@ -59,23 +63,53 @@ class TwinCamera:
         self.vr = vr
         self._settings: dict | None = None
         self._truth_extra = dict(truth_extra or {})
+        self._next: tuple[dict, float] | None = None
+        self._carried: dict | None = None
 
     def configure(self, *, exposure_s: float, iso: int, aperture: float) -> None:
         self._settings = dict(exposure_s=float(exposure_s), iso=int(iso), aperture=float(aperture))
+
+    def next_shot(self, shot, at_s: float) -> None:
+        """The orchestrator names the planned shot the next :meth:`capture` takes and its
+        time on the plan's schedule: the image then gets its own random stream and time
+        (:meth:`glossrig.twin.virtual_rig.VirtualRig.shoot`), so a resumed capture is
+        byte-identical to an uninterrupted one."""
+        image = dict(role=shot.role, rotation=float(shot.rotation), leds=tuple(shot.leds), repeat=int(shot.repeat),
+                     exposure_index=int(shot.exposure_index), view=shot.view)
+        self._next = (image, float(at_s))
 
     def capture(self, path: Path) -> ShotInfo:
         if self._settings is None:
             raise CameraError("capture() before configure()", device="twin camera")
         path = Path(path)
-        when = self.vr.now().isoformat(timespec="milliseconds")
         s = self._settings
-        self.vr.shoot(path, s["exposure_s"], s["iso"], s["aperture"])
+        image, at_s = self._next if self._next is not None else (None, None)
+        self._next = None
+        if at_s is not None:
+            self.vr.clock_s = at_s
+        when = self.vr.now().isoformat(timespec="milliseconds")
+        self.vr.shoot(path, s["exposure_s"], s["iso"], s["aperture"], image=image, at_s=at_s)
         info = confirm_shot(path, **s)
-        truth = self.vr.truth()
-        truth.update(self._truth_extra)
-        atomic_write_json(path.parent / TRUTH, truth)
+        self._write_truth(path.parent)
         return ShotInfo(exposure_s=info.exposure_s, iso=info.iso, aperture=info.aperture, camera=info.camera,
                         time=when)
+
+    def _write_truth(self, folder: Path) -> None:
+        """Refresh ``truth.json``. The negative-radiance counts of renders an interrupted
+        earlier run made (and this one need not repeat) are carried over, so the truth of a
+        resumed capture equals that of an uninterrupted one."""
+        if self._carried is None:
+            self._carried = {}
+            try:
+                old = json.loads((folder / TRUTH).read_text())
+                if isinstance(old, dict) and isinstance(old.get(_CLAMPED), dict):
+                    self._carried = dict(old[_CLAMPED])
+            except (OSError, ValueError):
+                pass
+        truth = self.vr.truth()
+        truth.update(self._truth_extra)
+        truth[_CLAMPED] = dict(sorted({**self._carried, **truth.get(_CLAMPED, {})}.items()))
+        atomic_write_json(folder / TRUTH, truth)
 
     def close(self) -> None:
         pass
@@ -95,6 +129,27 @@ class TwinOperator:
                           device="twin")
 
 
+def _same_material(a, b) -> bool:
+    return (a.kind, a.ward, a.albedo, a.path) == (b.kind, b.ward, b.albedo, b.path)
+
+
+def _check_sample_label(plan: CapturePlan, material) -> None:
+    """The plan's ``sample`` becomes the manifest's material label. Where that label names a
+    material (a spec or a scenes/materials name) it must be the one the twin renders: a
+    capture labelled sample_2_6 that holds a lambert:0.8 render is silently wrong data.
+    Free-text labels ("white paper, batch 3") cannot be compared and are left alone."""
+    from glossrig.core.materials import parse_material
+
+    try:
+        named = parse_material(plan.sample)
+    except InputError:
+        return
+    if not _same_material(named, material):
+        raise InputError(f"the plan's sample {plan.sample!r} (the manifest's material label) is not the material "
+                         f"the twin would render, [twin] material = {plan.twin['material']!r}; make them agree",
+                         path=plan.path)
+
+
 def make_twin_backends(plan: CapturePlan) -> tuple[TwinLights, TwinCamera, TwinOperator]:
     """One :class:`VirtualRig` from the plan's rig and ``[twin]`` table, behind the three adapters."""
     from glossrig.core.materials import parse_material
@@ -105,12 +160,19 @@ def make_twin_backends(plan: CapturePlan) -> tuple[TwinLights, TwinCamera, TwinO
         raise InputError("the twin backends take no checkerboard views (use `glossrig simulate --target "
                          "checkerboard`); set [checkerboard] views = 0", path=plan.path)
     t = plan.twin
+    if "material" not in t:
+        # no default: a twin that silently renders some other material than the plan's
+        # sample writes a capture whose manifest lies about what it holds
+        raise InputError("the twin backends need the material to render: the plan has no [twin] key 'material' "
+                         "(ward:..., lambert:ALBEDO, measured:PATH or a scenes/materials name; glossrig design "
+                         "exposures writes it)", path=plan.path)
     try:
-        material = parse_material(t.get("material", "lambert:0.8"))
+        material = parse_material(str(t["material"]))
         effects = {} if t.get("ideal", False) else dict(THESIS_FLUCTUATIONS)
         effects.update(parse_effects(t.get("effects")))
     except InputError as e:
         raise InputError(f"[twin]: {e}", path=plan.path) from None
+    _check_sample_label(plan, material)
     vr = VirtualRig(plan.rig, material, scale=float(t.get("scale", 0.25)), seed=int(t.get("seed", 0)),
                     effects=effects, spp=int(t.get("spp", 4)))
     extra = {"leds": list(plan.leds), "rotations": list(plan.rotations), "repeats": plan.repeats,

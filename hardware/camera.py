@@ -66,6 +66,13 @@ class Camera(Protocol):
     def close(self) -> None:
         """Release the camera."""
 
+    # Optional (not part of the checked protocol): ``next_shot(shot, at_s)`` - the
+    # orchestrator names the planned shot (:class:`glossrig.hardware.plan.Shot`) the next
+    # ``capture`` takes and its time on the plan's schedule (s from the start). A real
+    # camera has no use for it; the twin's camera keys the image's random stream and
+    # timestamp by it, so a resumed simulated capture is byte-identical to an
+    # uninterrupted one.
+
 
 def _rel(a: float, b: float) -> float:
     """Relative difference, as read_raw measures it."""

@@ -128,8 +128,9 @@ class CaptureRun:
     def __init__(self, plan: CapturePlan, out: str | Path, *, lights: Lights, camera: Camera, operator: Operator,
                  backends: dict, resume: bool = False, show_progress: bool = True,
                  min_free_bytes: int = DEFAULT_MIN_FREE_BYTES, disk_usage=shutil.disk_usage,
-                 log=None, sleep=time.sleep):
+                 log=None, sleep=time.sleep, meta: dict | None = None):
         self.plan = plan
+        self.extra_meta = dict(meta or {})
         self.out = Path(out)
         self.lights, self.camera, self.operator = lights, camera, operator
         self.backends = {k: str(v) for k, v in backends.items()}
@@ -140,6 +141,14 @@ class CaptureRun:
         self._log_stream = log if log is not None else sys.stderr
         self._sleep = sleep
         self.shots = plan.shots()
+        # Each shot's time on the plan's schedule (exposures plus the measured overhead of
+        # every shot before it): a function of its place in the plan, not of when this
+        # process took it, so a simulated shot is the same after a resume.
+        self.schedule_s: list[float] = []
+        t = 0.0
+        for s in self.shots:
+            self.schedule_s.append(t)
+            t += plan.shot_cost_s(s)
         self.report = CaptureReport(folder=self.out, planned=len(self.shots))
         self.manifest: Manifest | None = None
         self.progress: Progress | None = None
@@ -183,6 +192,7 @@ class CaptureRun:
                 "plan": self.plan.meta(), "backends": self.backends, "software": _software(), "started": now_iso()}
         if self.plan.twin and self.backends.get("camera") == "twin":
             meta["twin"] = dict(self.plan.twin)
+        meta.update(self.extra_meta)
         self.manifest = Manifest(folder=self.out, rig=RIG_COPY, material=self.plan.sample, images=[],
                                  complete=False, meta=meta)
         self.manifest.save()
@@ -278,6 +288,9 @@ class CaptureRun:
         if tmp.exists():
             tmp.unlink()
         started = now_iso()
+        announce = getattr(self.camera, "next_shot", None)
+        if announce is not None:     # optional: a simulated camera keys its shot by it (Camera protocol)
+            announce(shot, self.schedule_s[shot.index])
         try:
             info = self.camera.capture(tmp)
             fd = os.open(tmp, os.O_RDONLY)
@@ -416,6 +429,10 @@ class CaptureRun:
                                "relay board off by hand")
         missing = self.remaining()
         if not missing:
+            # plan order, whatever order a resume retook images in: a resumed capture's
+            # manifest lists its images exactly as an uninterrupted one's does
+            order = {s.key: s.index for s in self.shots}
+            self.manifest.images.sort(key=lambda im: order.get(im.key(), len(order)))
             self.manifest.complete = True
             self.manifest.meta["finished"] = now_iso()
             self.manifest.save()

@@ -29,8 +29,10 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from glossrig.core.capture import check_rotation_tags, image_stem, rotation_tag  # noqa: F401 - rotation_tag re-exported
 from glossrig.core.errors import InputError
-from glossrig.core.rig import REPO_ROOT, Rig, load_rig
+from glossrig.core.resources import resolve_input
+from glossrig.core.rig import Rig, load_rig
 
 #: Thesis table 4.1 exposure sequence (s) and its sum (61.00725 s).
 THESIS_SEQUENCE_S = (0.00025, 0.0005, 0.001, 0.002, 0.004, 0.008, 0.0166, 0.0333, 0.0666, 0.125, 0.25, 0.5,
@@ -67,7 +69,8 @@ iso = 3200
 aperture = 11.0
 
 [twin]                           # only read by the twin backends
-material = "lambert:0.8"         # ward:..., lambert:ALBEDO, measured:PATH or a scenes/materials name
+material = "lambert:0.8"         # required: ward:..., lambert:ALBEDO, measured:PATH or a scenes/materials
+                                 # name; where `sample` names a material too, they must agree
 scale = 0.1                      # image scale of the 6032 x 4032 sensor (0.01..1)
 seed = 1
 effects = "led_drift=0.02"       # named non-idealities, as glossrig simulate --effects;
@@ -107,24 +110,13 @@ class Shot:
 
     @property
     def stem(self) -> str:
-        """File name without extension, unique within a plan."""
-        if self.role == "checkerboard":
-            return f"checkerboard_view{self.view:02d}"
-        rot = rotation_tag(self.rotation)
-        if self.role == "calibration":
-            return f"rot{rot}_calibration"
-        led = "-".join(f"{i:02d}" for i in self.leds)
-        return f"rot{rot}_led{led}_rep{self.repeat}_exp{self.exposure_index:02d}"
+        """File name without extension, unique within a plan (:func:`glossrig.core.capture.image_stem`,
+        the one naming scheme ``glossrig simulate`` uses too)."""
+        return image_stem(self.role, rotation=self.rotation, leds=self.leds, repeat=self.repeat,
+                          exposure_index=self.exposure_index, view=self.view)
 
     def settings(self) -> tuple[float, int, float]:
         return (self.exposure_s, self.iso, self.aperture)
-
-
-def rotation_tag(deg: float) -> str:
-    """-45 -> "m045", 0 -> "p000", 22.5 -> "p022.5" (file names without signs or dots first)."""
-    a = abs(float(deg))
-    body = f"{int(a):03d}" if a == int(a) else f"{a:05.1f}"
-    return ("m" if deg < 0 else "p") + body
 
 
 @dataclass(frozen=True)
@@ -286,21 +278,17 @@ def _leds(rig: Rig, spec, path, key: str) -> tuple[int, ...]:
 
 
 def resolve_rig_path(value: str, plan_path: Path) -> Path:
-    """A plan's ``rig``: absolute, or relative to the plan file, the working folder,
-    or the repository (so ``scenes/thesis_rig.toml`` works from anywhere)."""
-    p = Path(value)
-    if p.is_absolute():
-        return p
-    for base in (plan_path.parent, Path.cwd(), REPO_ROOT):
-        if (base / p).is_file():
-            return (base / p).resolve()
-    raise _fail(f"rig file {value!r} not found (looked next to the plan, in {Path.cwd()} and in {REPO_ROOT})",
-                plan_path)
+    """A plan's ``rig``: absolute, or relative to the plan file, the working folder or
+    the packaged scenes (:func:`glossrig.core.resources.resolve_input`, so
+    ``scenes/thesis_rig.toml`` works from anywhere, installed or not)."""
+    return resolve_input(value, f"rig file {value!r}", first=[plan_path.parent], named=plan_path)
 
 
 def load_plan(path: str | Path) -> CapturePlan:
-    """Read and check a capture plan; every error names the plan file and the key."""
-    path = Path(path)
+    """Read and check a capture plan; every error names the plan file and the key. A
+    relative ``path`` is looked for in the current folder, then among the packaged scenes
+    (``scenes/plans/twin_small.toml`` and ``plans/twin_small.toml`` work from anywhere)."""
+    path = resolve_input(path, "capture plan")
     try:
         text = path.read_bytes()
     except FileNotFoundError:
@@ -333,6 +321,7 @@ def load_plan(path: str | Path) -> CapturePlan:
     rots = tuple(float(r) for r in rots)
     if len(set(rots)) != len(rots):
         raise _fail("rotations lists an angle twice", path)
+    check_rotation_tags(rots, where=path)
 
     leds = _leds(rig, raw.get("leds", "middle"), path, "leds")
     default_repeats = rig.raw.get("exposures", {}).get("sequences_per_led", 1)

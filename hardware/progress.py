@@ -13,6 +13,8 @@ import sys
 
 from tqdm import tqdm
 
+from glossrig.core.progress import progress_enabled
+
 from .camera import format_exposure
 from .plan import Shot
 
@@ -27,7 +29,7 @@ class Progress:
         self._total = round(total_work_s, 3)
         self._counted = 0.0
         self._bar = tqdm(total=self._total, unit="s", unit_scale=False, file=stream or sys.stderr,
-                         disable=disable, dynamic_ncols=True, smoothing=0.05,
+                         disable=not progress_enabled(not disable), dynamic_ncols=True, smoothing=0.05,
                          bar_format="{desc} {percentage:3.0f}%|{bar}| [{elapsed} elapsed, {remaining} left]")
         self._set_desc(None)
 

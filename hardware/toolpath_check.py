@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Iterable
 
 from glossrig.core.errors import InputError
+from glossrig.core.resources import resolve_input
 from glossrig.core.rig import SCENES_DIR
 from glossrig.core.toml_input import read_toml
 
@@ -67,7 +68,7 @@ class MachineLimits:
 
 def load_machine_limits(path: str | Path | None = None, *, max_height_mm: float | None = None) -> MachineLimits:
     """Limits from a machine description (default ``scenes/engraver_roland.toml``)."""
-    path = Path(path) if path is not None else DEFAULT_MACHINE
+    path = resolve_input(path, "machine description") if path is not None else DEFAULT_MACHINE
     raw = read_toml(path, "machine description")
 
     def get(section, key):

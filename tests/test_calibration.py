@@ -202,7 +202,8 @@ def test_poses_recover_the_twin_geometry(sample_capture, geometry):
     # camera centre in the holder frame: the nominal rig puts it on +z at distance_to_axis
     C = -Rh.T @ th
     assert np.linalg.norm(geometry["camera_in_holder"]["centre_mm"] - C) < 2.0
-    assert geometry["file"] == "calibration_rp000.dng" and len(geometry["sha256"]) == 64
+    assert geometry["file"] == load_manifest(sample_capture).select("calibration")[0].file   # from the manifest
+    assert len(geometry["sha256"]) == 64
     assert geometry["corners_px"]["holder"].shape == (8, 2)
     assert geometry["corners_px"]["cylinder"].shape == (12, 2)
 
@@ -272,7 +273,7 @@ def test_camera_file_for_another_image_size_is_refused(sample_capture, true_came
     cal = load_camera(true_camera_json)
     cal.image_size = (cal.image_size[0] * 2, cal.image_size[1] * 2)
     other = save_camera(cal, {}, tmp_path / "other.json")
-    with pytest.raises(InputError, match="calibration_rp000.dng: image is .* but the camera calibration"):
+    with pytest.raises(InputError, match=r"rotp000\.00_calibration\.dng: image is .* but the camera calibration"):
         calibrate_capture(sample_capture, other)
 
 
@@ -502,7 +503,7 @@ def test_white_balance_ignores_a_bright_coloured_sample(sample_capture, true_cam
 
     rig = load_rig(RIG)
     cam = load_camera(true_camera_json)
-    fr = read_raw(sample_capture / "calibration_rp000.dng")
+    fr = read_raw(sample_capture / load_manifest(sample_capture).select("calibration")[0].file)
     rgb = demosaic(linearize(fr), fr.cfa)
     h, w = rgb.shape[:2]
     corners = np.concatenate([geometry["corners_px"]["holder"], geometry["corners_px"]["cylinder"]])

@@ -38,7 +38,7 @@ def test_shots_follow_the_thesis_order(tmp_path):
         ((2,), 0, 0.01), ((2,), 0, 0.02), ((2,), 1, 0.01), ((2,), 1, 0.02)]
     assert {s.rotation for s in shots[9:]} == {-45.0}
     assert len({s.stem for s in shots}) == len(shots) == len({s.key for s in shots})
-    assert shots[10].stem == "rotm045_led01_rep0_exp00"
+    assert shots[10].stem == "rotm045.00_led01_rep0_exp00"
 
 
 def test_shot_identity_matches_the_manifest_entry_identity(tmp_path):
@@ -50,7 +50,13 @@ def test_shot_identity_matches_the_manifest_entry_identity(tmp_path):
 
 
 def test_rotation_tags():
-    assert [rotation_tag(r) for r in (-45, 0, 90, 22.5, -7.5)] == ["m045", "p000", "p090", "p022.5", "m007.5"]
+    assert [rotation_tag(r) for r in (-45, 0, 90, 22.5, -7.5)] == ["m045.00", "p000.00", "p090.00", "p022.50",
+                                                                  "m007.50"]
+
+
+def test_rotations_that_would_share_file_names_are_refused(tmp_path):
+    with pytest.raises(InputError, match="closer than 0.01 degree"):
+        plan_from(tmp_path, BASE.replace("rotations = [0, -45]", "rotations = [22.5, 22.501]"))
 
 
 def test_defaults_come_from_the_rig_and_the_thesis(tmp_path):

@@ -236,7 +236,7 @@ def test_bad_fit_file_names_the_file(tmp_path):
 
 
 def test_rewrite_refuses_unknown_effect(tmp_path):
-    from glossrig.core.diagnose.hide import rewrite_capture
+    from glossrig.twin.rewrite_raw import rewrite_capture
 
     with pytest.raises(InputError, match="can only rewrite"):
         rewrite_capture(tmp_path, tmp_path / "x", "vignetting", 0.1)
@@ -280,7 +280,7 @@ def _cause(rep, name):
 @pytest.mark.slow
 @pytest.mark.mitsuba
 def test_end_to_end_hidden_outside_the_twin(chain):
-    from glossrig.core.diagnose.hide import rewrite_capture
+    from glossrig.twin.rewrite_raw import rewrite_capture
 
     rep = _diagnose(chain, chain / "null", chain / "rep_null")
     assert rep["verdict"] == "none", rep["causes"][:3]

@@ -278,3 +278,54 @@ def test_thesis_demosaic_matches_inside_and_darkens_border():
     err_th = np.abs(th[0] - truth).max()
     assert err_cv < 1e-4 and err_th > 0.1
     assert np.allclose(th[4:-4, 4:-4], truth, atol=1e-6)
+
+
+# ------------------------------------------------ checksums (issue #16)
+
+def _one_image_capture(folder, role="sequence"):
+    """A capture folder whose manifest lists one DNG with its sha256, as the capture tools write it."""
+    import json
+
+    folder.mkdir()
+    digest = _write(folder / "seq.dng")
+    im = {"file": "seq.dng", "role": role, "leds": [9], "rotation": 0.0, "repeat": 0, "exposure_s": 0.0166,
+          "iso": 320, "aperture": 11.0, "time": T0.isoformat(), "sha256": digest}
+    (folder / "capture.json").write_text(json.dumps({"rig": "rig.toml", "material": "m", "complete": True,
+                                                     "images": [im]}))
+    return folder / "seq.dng"
+
+
+def test_capture_images_are_read_only_if_their_checksum_matches_the_manifest(tmp_path):
+    """A few flipped bytes in the pixel data still decode - into wrong values, silently - so
+    every capture read goes through Manifest.read_raw, which compares the manifest's sha256."""
+    from glossrig.core.capture import load_manifest
+
+    f = _one_image_capture(tmp_path / "cap")
+    man = load_manifest(tmp_path / "cap")
+    good = man.read_raw(man.images[0])
+    assert np.array_equal(good.mosaic, _mosaic()) and good.exposure_s == pytest.approx(0.0166)
+    assert np.array_equal(man.read_raw(man.images[0], crop=(2, 4, 10, 12)).mosaic, _mosaic()[4:12, 2:10])
+    with tifffile.TiffFile(f) as tf:
+        start = int(tf.pages[0].dataoffsets[0])     # the pixel strip
+    data = bytearray(f.read_bytes())
+    for k in range(0, 400, 7):                      # flip bytes inside it
+        data[start + 100 + k] ^= 0xFF
+    f.write_bytes(bytes(data))
+    assert not np.array_equal(read_raw(f).mosaic, _mosaic())        # decodes fine, but wrong: the hazard
+    with pytest.raises(InputError, match=r"seq\.dng: checksum does not match capture\.json \(file changed since capture\)"):
+        man.read_raw(man.images[0])
+    with pytest.raises(InputError, match="seq.dng: checksum does not match capture.json"):
+        read_raw(f, sha256=man.images[0].sha256)
+
+
+def test_rewriting_a_capture_on_purpose_updates_its_checksums(tmp_path):
+    """Tools that rewrite raw values on purpose (glossrig.twin.rewrite_raw.rewrite_capture) keep the
+    manifest honest, so the checksum check lets their captures through."""
+    from glossrig.core.capture import load_manifest
+    from glossrig.twin.rewrite_raw import rewrite_capture
+
+    _one_image_capture(tmp_path / "src")
+    rewrite_capture(tmp_path / "src", tmp_path / "dst", "black_level_offset", 5)
+    man = load_manifest(tmp_path / "dst")
+    got = man.read_raw(man.images[0]).mosaic
+    assert np.array_equal(got, np.clip(_mosaic().astype(int) + 5, 0, WHITE))

@@ -14,7 +14,7 @@ from glossrig.core.errors import InputError
 from glossrig.core.fabrication.etn import MODEL_KIND, Etn, load_etn
 from glossrig.core.fabrication.inputs import load_coverage_image, resample
 
-FILES = {"halftone.png", "toolpath.gcode", "preview.svg", "preview.png", "summary.json"}
+FILES = {"halftone.png", "toolpath.gcode", "preview.svg", "preview.png", "preview_render.png", "summary.json"}
 
 
 def _grey(tmp_path, value, shape=(90, 120), name="grey.png"):
@@ -117,7 +117,7 @@ def test_etn_forms_and_contract(tmp_path):
 
 
 @pytest.mark.parametrize("content, words", [
-    ("{not json", "not a JSON reproduction model"),
+    ("{not json", "model file is not readable JSON"),
     (json.dumps({"kind": "glossrig.fabrication_summary"}), "expected a reproduction model"),
     (json.dumps([1, 2]), "expected a reproduction model"),
     (json.dumps({"kind": MODEL_KIND}), "lacks the \"etn\""),
@@ -180,7 +180,7 @@ def test_does_not_overwrite_without_permission(tmp_path, capsys):
     assert _run(capsys, img, "--width-mm", 5, "--out", out)[0] == 0
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     rc, _, err = _run(capsys, _grey(tmp_path, 220, name="other.png"), "--width-mm", 5, "--out", out)
-    assert rc != 0 and "--overwrite" in err
+    assert rc != 0 and "--force" in err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
-    assert _run(capsys, _grey(tmp_path, 220, name="other.png"), "--width-mm", 5, "--out", out, "--overwrite")[0] == 0
+    assert _run(capsys, _grey(tmp_path, 220, name="other.png"), "--width-mm", 5, "--out", out, "--force")[0] == 0
     assert (out / "halftone.png").read_bytes() != before["halftone.png"]

@@ -72,7 +72,7 @@ def test_exported_material_loads_and_renders_through_the_twin(samples_path, tmp_
     from PIL import Image
 
     from glossrig.core.export import mitsuba_from_params
-    from glossrig.core.fit_plots import render_preview
+    from glossrig.twin.material_renders import render_preview
     from glossrig.twin.mitsuba_env import mitsuba
 
     mi = mitsuba()

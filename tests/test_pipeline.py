@@ -110,6 +110,54 @@ def test_missing_exposure_and_corrupt_file_name_the_file(rigdata, tmp_path):
     assert not (tmp_path / "x.parquet").exists()
 
 
+def test_flipped_bytes_in_a_dng_stop_extract(rigdata, tmp_path):
+    """Issue #16: bytes flipped inside a DNG's pixel data still decode (into wrong values);
+    extract used to succeed with thousands of rows changed. The manifest's sha256 stops it."""
+    import tifffile
+
+    bad = tmp_path / "sample"
+    shutil.copytree(rigdata / "sample", bad)
+    man = json.loads((bad / "capture.json").read_text())
+    victim = [im for im in man["images"] if im["role"] == "sequence"][-1]["file"]
+    f = bad / victim
+    with tifffile.TiffFile(f) as tf:
+        page = tf.pages[0]
+        pages = [page] + list(getattr(page, "pages", []) or [])
+        start, count = max(((int(p.dataoffsets[0]), int(p.databytecounts[0])) for p in pages if p.dataoffsets),
+                           key=lambda oc: oc[1])
+    data = bytearray(f.read_bytes())
+    for k in range(start + count // 2, start + count // 2 + 20000, 2):
+        data[k] ^= 0x01
+    f.write_bytes(bytes(data))
+    out = tmp_path / "x.parquet"
+    r = glossrig("extract", bad, "--reference", rigdata / "reference", "--camera", rigdata / "camera.json",
+                 "--lamps", rigdata / "lamps.json", "--out", out, "--no-progress", check=False)
+    assert r.returncode == 2, r.stderr[-500:]
+    assert f"{f}: checksum does not match capture.json (file changed since capture)" in r.stderr, r.stderr[-500:]
+    assert not out.exists()
+
+
+def test_checkerboard_or_diffuse_capture_given_for_a_sample_stops_early(rigdata, tmp_path):
+    """Issue #16: a checkerboard capture given to extract crashed in pandas ("No objects to
+    concatenate"); it is recognised from the manifest's roles and named."""
+    common = ["--camera", rigdata / "camera.json", "--lamps", rigdata / "lamps.json", "--no-progress"]
+    r = glossrig("extract", rigdata / "checker", "--reference", rigdata / "reference", *common,
+                 "--out", tmp_path / "a.parquet", check=False)
+    assert r.returncode == 2, r.stderr[-500:]
+    assert (f"{rigdata / 'checker'}: SAMPLE_DIR is a checkerboard capture (for glossrig calibrate camera); extract "
+            f"needs a sample capture with exposure sequences") in r.stderr, r.stderr[-500:]
+    assert "concatenate" not in r.stderr and not (tmp_path / "a.parquet").exists()
+    r = glossrig("extract", rigdata / "sample", "--reference", rigdata / "checker", *common,
+                 "--out", tmp_path / "b.parquet", check=False)
+    assert r.returncode == 2 and "REF_DIR is a checkerboard capture" in r.stderr, r.stderr[-500:]
+    for cap, why in (("checker", "SPECULAR_DIR is a checkerboard capture"),
+                     ("reference", "SPECULAR_DIR is a capture of a diffuse material (lambert:0.8)")):
+        r = glossrig("calibrate", "lamps", rigdata / cap, "--camera", rigdata / "camera.json",
+                     "--out", tmp_path / f"{cap}.json", "--no-progress", check=False)
+        assert r.returncode == 2 and why in r.stderr and str(rigdata / cap) in r.stderr, r.stderr[-500:]
+        assert not (tmp_path / f"{cap}.json").exists()
+
+
 def test_reference_from_another_rig_or_rotation_set(rigdata, tmp_path):
     from glossrig.core.extract import check_compatible
 
@@ -130,3 +178,49 @@ def test_reference_from_another_rig_or_rotation_set(rigdata, tmp_path):
     (rot / "capture.json").write_text(json.dumps(man))
     with pytest.raises(InputError, match="another rotation or LED set"):
         check_compatible(rigdata / "sample", rot)
+
+
+def test_extract_then_fit_record_their_provenance(rigdata, tmp_path):
+    """Issue #16: samples.parquet records what it was made from (both manifests, the rig,
+    camera.json, lamps.json with their sha256, the options, the version and the source
+    commit) in its Parquet schema metadata, and fit.json records the samples file with that
+    provenance (the chain back to the raw captures). Paths are recorded as given (here
+    relative, run from the data folder) and resolved."""
+    import hashlib
+    from importlib.metadata import version
+
+    import pyarrow.parquet as pq
+
+    from glossrig.core.provenance import source_revision
+    from glossrig.core.samples import read_samples
+
+    def sha(p):
+        return hashlib.sha256(p.read_bytes()).hexdigest()
+
+    out = tmp_path / "prov.parquet"
+    r = subprocess.run([sys.executable, "-m", "glossrig.cli.main", "extract", "sample", "--reference", "reference",
+                        "--camera", "camera.json", "--lamps", "lamps.json", "--reference-albedo", "0.75",
+                        "--out", str(out), "--no-progress"], cwd=rigdata, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    prov = json.loads(pq.read_schema(out).metadata[b"glossrig.provenance"])
+    assert prov["tool"] == "glossrig extract" and prov["glossrig_version"] == version("glossrig")
+    assert prov["source"] == source_revision()               # this checkout's commit (None from a wheel)
+    ins = prov["inputs"]
+    for name, path, hashed in (("sample", "sample", "sample/capture.json"),
+                               ("reference", "reference", "reference/capture.json"),
+                               ("camera", "camera.json", "camera.json"), ("lamps", "lamps.json", "lamps.json")):
+        assert ins[name]["path"] == path and ins[name]["resolved"] == str((rigdata / path).resolve())
+        assert ins[name]["sha256"] == sha(rigdata / hashed), name
+    assert ins["sample_rig"]["sha256"] == sha(RIG)
+    assert prov["options"] == {"reference_albedo": 0.75, "estimator": "ml"}
+    assert read_samples(out).attrs["provenance"] == prov
+
+    fit = tmp_path / "fit.json"
+    r = subprocess.run([sys.executable, "-m", "glossrig.cli.main", "fit", str(out), "--out", str(fit),
+                        "--channels", "luminance", "--starts", "1", "--seed", "3", "-q"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    fp = json.loads(fit.read_text())["provenance"]
+    assert fp["tool"] == "glossrig fit" and fp["glossrig_version"] == version("glossrig")
+    assert fp["inputs"]["samples"]["sha256"] == sha(out)
+    assert fp["inputs"]["samples"]["provenance"] == prov         # the chain
+    assert fp["options"]["starts"] == 1 and fp["options"]["seed"] == 3 and fp["options"]["channels"] == ["luminance"]

@@ -94,3 +94,47 @@ def test_bad_arguments_exit_nonzero(tmp_path, capsys, model_path):
     assert "missing" in capsys.readouterr().err
     assert main(["model", "predict", "--model", WARD, "--ward", TARGET]) == 2
     assert "not valid JSON" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("ward,msg", [
+    ("rho_d=0.0492,rho_s=0.0083,alpha_x=0.0835,alpha_y=0.0311,lobe_rotation=140", "beyond 2 pi radians: degrees?"),
+    ("rho_d=5,rho_s=0.0083,alpha_x=0.0835,alpha_y=0.0311", "rho_d=5 must lie in [0, 1]"),
+    ("rho_d=0.0492,rho_s=0.0083,alpha_x=6,alpha_y=0.0311", "alpha_x=6 must lie in (0, 0.5]"),
+    ("rho_d=0.7,rho_s=0.5,alpha_x=0.0835,alpha_y=0.0311", "rho_d + rho_s = 1.2 exceeds 1"),
+])
+def test_predict_refuses_values_out_of_range(model_path, capsys, ward, msg):
+    """Issue #16: degrees for lobe_rotation, rho_d = 5 or alpha = 6 used to be predicted from."""
+    assert main(["model", "predict", "--model", str(model_path), "--ward", ward]) == 2
+    err = capsys.readouterr().err
+    assert msg in err and "glossrig model: error:" in err, err
+
+
+def test_predict_takes_an_explicit_angle_unit(model_path, capsys):
+    rad = TARGET
+    deg = TARGET.replace("lobe_rotation=2.56", "lobe_rotation=146.677deg")     # 2.56 rad
+    assert main(["model", "predict", "--model", str(model_path), "--ward", rad, "--json"]) == 0
+    a = json.loads(capsys.readouterr().out)
+    assert main(["model", "predict", "--model", str(model_path), "--ward", deg, "--json"]) == 0
+    b = json.loads(capsys.readouterr().out)
+    assert b["nominal_b2"] == pytest.approx(a["nominal_b2"], abs=1e-3)
+
+
+@pytest.mark.parametrize("verb", ["fit", "crossval"])
+def test_ward_table_in_degrees_is_refused(tmp_path, capsys, verb):
+    """A lobe_rotation column in degrees (Table 4.2 bounds it by 0..360) named with its file and column."""
+    lines = Path(WARD).read_text().splitlines()
+    out_lines = []
+    for line in lines:
+        if line.startswith("#") or line.startswith("name,"):
+            out_lines.append(line)
+            continue
+        f = line.split(",")
+        f[5] = f"{float(f[5]) * 180 / 3.141592653589793:.1f}"
+        out_lines.append(",".join(f))
+    p = tmp_path / "ward_deg.csv"
+    p.write_text("\n".join(out_lines) + "\n")
+    out = tmp_path / "out.json"
+    assert main(["model", verb, "--ward", str(p), "--coverages", COV, "--out", str(out), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert f"{p}: column 'lobe_rotation' holds 144.4 (row 1), beyond 2 pi: the column looks like degrees" in err, err
+    assert not out.exists()

@@ -150,7 +150,7 @@ def test_bad_input_clear_errors(tmp_path):
     assert r.returncode == 2 and "led_drift" in r.stderr
     (tmp_path / "afile").write_text("")
     r = run("--out", str(tmp_path / "afile" / "cap"))      # parent is a file: cannot be created
-    assert r.returncode == 2 and "not writable" in r.stderr
+    assert r.returncode == 2 and "cannot write here" in r.stderr and "is a file" in r.stderr
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "x").write_text("keep me")
     r = run("--out", str(tmp_path / "full"))

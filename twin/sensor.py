@@ -64,7 +64,7 @@ from glossrig.core.errors import InputError
 
 from .dng import XYZ_TO_SRGB
 
-__all__ = ["SensorModel", "SensorContext", "SensorEffect", "frame_rng"]
+__all__ = ["SensorModel", "SensorContext", "SensorEffect", "frame_rng", "image_rng"]
 
 #: Rows of the mosaic whose noise is drawn at once (bounds the float64/int64
 #: temporaries of Generator.poisson). Fixed: it is part of what a seed means.
@@ -78,6 +78,36 @@ def frame_rng(seed: int, frame_index: int) -> np.random.Generator:
     if int(seed) < 0 or int(frame_index) < 0:
         raise InputError(f"seed and frame index must be >= 0, got {seed}, {frame_index}")
     return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(frame_index),)))
+
+
+#: First spawn-key word of :func:`image_rng` streams, so they never meet :func:`frame_rng`'s
+#: (whose spawn key is the bare frame index).
+_IMAGE_STREAM = 0x1A6E0001
+_ROLE_CODE = {"calibration": 1, "sequence": 2, "checkerboard": 3}
+
+
+def image_rng(seed: int, role: str, rotation: float, leds, repeat: int = 0, exposure_index: int = 0,
+              view: int | None = None) -> np.random.Generator:
+    """The random generator of one planned image, keyed by what the image *is*: its role,
+    sample rotation (to 0.001 degree), the LEDs on, the repeat, the index in its
+    exposure sequence and the checkerboard view - never by how many images this process
+    made before. Sensor noise and LED fluctuations drawn from it are therefore the same
+    whether a capture runs in one go, is resumed after an interruption or is re-made
+    image by image (design.md: an interrupted run resumes byte-identical)."""
+    if int(seed) < 0:
+        raise InputError(f"seed must be >= 0, got {seed}")
+    if role not in _ROLE_CODE:
+        raise InputError(f"role {role!r} not one of {tuple(_ROLE_CODE)}")
+    milli = round(float(rotation) * 1000)
+    rot = 2 * milli if milli >= 0 else -2 * milli - 1            # zigzag: non-negative, one-to-one
+    mask = 0
+    for i in leds:
+        mask |= 1 << int(i)
+    key = (_IMAGE_STREAM, _ROLE_CODE[role], rot, mask, int(repeat), int(exposure_index),
+           0 if view is None else int(view) + 1)
+    if min(key) < 0:
+        raise InputError(f"repeat, exposure index and view must be >= 0, got {repeat}, {exposure_index}, {view}")
+    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=key))
 
 
 @dataclass

@@ -8,26 +8,45 @@ calibration. Files are written as they are made; the manifest is saved after
 every file with ``complete: false`` and turned complete only at the end, so an
 interrupted run never looks like a finished capture. ``truth.json`` holds what
 was simulated; the pipeline never reads it.
+
+The sample capture runs as a capture plan through the hardware layer's
+orchestrator on the twin backends, exactly as ``glossrig capture --lights twin
+--camera twin`` does: the same file names (:func:`glossrig.core.capture.image_stem`),
+the same folder (capture.json, raw files, rig.toml, truth.json) and the same
+resume. Every image draws its noise and LED fluctuations from its own random
+stream, keyed by what it is in the plan (:func:`glossrig.twin.sensor.image_rng`),
+and takes its time (LED drift, timestamps) from its place on the plan's
+schedule, so ``resume=True`` completes an interrupted capture byte-identical to
+an uninterrupted one. The options that determine the images are recorded in the
+manifest (``simulate``) and a resume with other options is refused.
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from glossrig.core.capture import ImageEntry, Manifest, atomic_write_json, TRUTH
+from glossrig.core.capture import (TRUTH, ImageEntry, Manifest, atomic_write_json, check_rotation_tags, image_stem,
+                                   load_manifest, rotation_tag, sha256_file)
 from glossrig.core.errors import InputError
 from glossrig.core.materials import parse_material
+from glossrig.core.progress import progress_enabled
 from glossrig.core.rig import load_rig
 
 from .effects import THESIS_FLUCTUATIONS, parse_effects
 
 
-def prepare_out(out: Path) -> None:
+def prepare_out(out: Path, resume: bool = False) -> None:
+    """The capture folder may be written: missing or empty (or, with ``resume``, holding
+    the interrupted capture to complete), and writable."""
     out = Path(out)
-    if out.exists() and any(out.iterdir()):
+    if out.exists() and not out.is_dir():
+        raise InputError("output exists and is not a folder", path=out)
+    if not resume and out.exists() and any(out.iterdir()):
         raise InputError("output folder exists and is not empty; refusing to overwrite a capture", path=out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -38,74 +57,117 @@ def prepare_out(out: Path) -> None:
         raise InputError(f"output folder is not writable: {e.strerror}", path=out) from None
 
 
-def rot_tag(rot: float) -> str:
-    return f"r{rot:+04.0f}".replace("+", "p").replace("-", "m")
+#: The copy of the rig description every capture folder holds (as ``glossrig capture`` writes it).
+RIG_COPY = "rig.toml"
+#: The manifest key under which ``simulate`` records the options that determine its images.
+OPTIONS_KEY = "simulate"
+
+
+def _check_resume(out: Path, options: dict) -> bool:
+    """With ``--resume``: whether there is a capture to continue in ``out`` (False: start
+    afresh in an empty or missing folder). Refuses a folder that holds no capture, a
+    capture not made by ``glossrig simulate``, or one made with other options - the
+    resumed images would not belong to the same capture."""
+    from glossrig.core.capture import MANIFEST
+
+    man = out / MANIFEST
+    if not man.is_file():
+        if out.is_dir() and any(out.iterdir()):
+            raise InputError("--resume: the folder holds no capture manifest (capture.json); nothing to resume "
+                             "(nothing was changed)", path=out)
+        return False
+    try:
+        doc = json.loads(man.read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(f"--resume: the manifest cannot be read ({e})", path=man) from None
+    old = doc.get(OPTIONS_KEY) if isinstance(doc, dict) else None
+    if not isinstance(old, dict):
+        raise InputError("--resume: this capture was not made by glossrig simulate (its manifest records no "
+                         "simulate options); nothing was changed", path=man)
+    diff = [k for k in sorted(set(old) | set(options)) if old.get(k) != options.get(k)]
+    if diff:
+        what = "; ".join(f"{k}: capture {old.get(k)!r}, now {options.get(k)!r}" for k in diff)
+        raise InputError(f"--resume: the capture was made with other options ({what}); rerun with the original "
+                         "options or choose another --out (nothing was changed)", path=man)
+    return True
 
 
 def simulate(rig_path, material_spec: str, leds_spec, rotations, repeats: int, scale: float, seed: int,
              effects_text: str | None, out, target: str = "sample", ideal: bool = False, spp: int = 4,
-             keep_exr: bool = False, views: int = 12, progress: bool = True) -> Path:
+             keep_exr: bool = False, views: int = 12, progress: bool = True, resume: bool = False) -> Path:
+    """Synthesise a capture folder (module docstring); ``resume`` completes an interrupted one.
+
+    The sample capture is a capture plan (thesis 4.2.3) run by the hardware layer's
+    orchestrator on the twin backends - the very code ``glossrig capture --lights twin
+    --camera twin`` runs - so both write the same folder: ``capture.json``, the raw files
+    under the names of :func:`glossrig.core.capture.image_stem`, ``rig.toml`` (the rig
+    the capture was made with) and ``truth.json``. Every image has its own random stream
+    and its time on the plan's schedule, so a resumed capture is byte-identical to an
+    uninterrupted one; resume checks every recorded file against its sha256 and retakes
+    what is missing or damaged."""
     rig = load_rig(rig_path)
     material = parse_material(material_spec)
     if repeats < 1:
         raise InputError(f"--repeats must be >= 1, got {repeats}")
     if not (0.01 <= scale <= 1.0):
         raise InputError(f"--scale must lie in [0.01, 1], got {scale}")
+    if int(seed) < 0:
+        raise InputError(f"--seed must be >= 0, got {seed}")
     effects = {} if ideal else dict(THESIS_FLUCTUATIONS)
     effects.update(parse_effects(effects_text))
     out = Path(out)
     if target == "checkerboard":
-        prepare_out(out)
-        return simulate_checkerboard(rig, out, scale=scale, seed=seed, views=views, spp=spp, progress=progress)
+        if views < 1:
+            raise InputError(f"--views must be >= 1, got {views}")
+        options = {"target": target, "rig_name": rig.name, "scale": float(scale), "seed": int(seed),
+                   "views": int(views), "spp": int(spp)}
+        resuming = _check_resume(out, options) if resume else False
+        prepare_out(out, resume=resume)
+        return simulate_checkerboard(rig, out, scale=scale, seed=seed, views=views, spp=spp, progress=progress,
+                                     options=options, resume=resuming)
     if target != "sample":
         raise InputError(f"--target must be sample or checkerboard, got {target!r}")
     led_ids = rig.select_leds(leds_spec)
-    prepare_out(out)
+    rotations = [float(r) for r in rotations]
+    if len(set(rotations)) != len(rotations):
+        raise InputError(f"--rotations lists an angle twice: {rotations}")
+    check_rotation_tags(rotations)
+    options = {"target": target, "rig_name": rig.name, "material": material_spec, "leds": list(led_ids),
+               "rotations": rotations, "repeats": int(repeats), "scale": float(scale), "seed": int(seed),
+               "effects": dict(sorted(effects.items())), "spp": int(spp)}
+    resuming = _check_resume(out, options) if resume else False
+    prepare_out(out, resume=resume)
 
-    from .virtual_rig import VirtualRig
+    from glossrig.hardware.backends_twin import TwinCamera, TwinLights, TwinOperator
+    from glossrig.hardware.orchestrator import run_capture
+    from glossrig.hardware.plan import CapturePlan
 
+    from .virtual_rig import SHOT_OVERHEAD_S, VirtualRig
+
+    text = json.dumps(options, sort_keys=True).encode()
+    cal = (rig.calibration_time_s, rig.calibration_iso, rig.calibration_aperture)
+    plan = CapturePlan(
+        path="glossrig simulate", text_sha256=hashlib.sha256(text).hexdigest(), rig=rig,
+        rig_path=Path(rig.path).resolve(), sample=material.label, rotations=tuple(rotations), leds=tuple(led_ids),
+        repeats=int(repeats), exposures_s=tuple(rig.exposure_times_s), iso=rig.sequence_iso,
+        aperture=rig.sequence_aperture, calibration=True, calibration_exposure_s=cal[0], calibration_iso=cal[1],
+        calibration_aperture=cal[2], checkerboard_views=0, checkerboard_leds=(), checkerboard_exposure_s=cal[0],
+        checkerboard_iso=cal[1], checkerboard_aperture=cal[2], overhead_s_per_shot=SHOT_OVERHEAD_S, settle_s=0.0,
+        twin={"material": material_spec, "scale": float(scale), "seed": int(seed), "spp": int(spp),
+              "effects": ",".join(f"{k}={v!r}" for k, v in sorted(effects.items())), "ideal": not effects})
     vr = VirtualRig(rig, material, scale=scale, seed=seed, effects=effects, spp=spp)
-    man = Manifest(folder=out, rig=str(Path(rig.path).resolve()), material=material.label,
-                   meta={"rig_name": rig.name, "source": "glossrig twin", "scale": scale})
-    times = rig.exposure_times_s
-    total = len(rotations) * (1 + len(led_ids) * repeats * len(times))
-    bar = tqdm(total=total, desc="simulate", unit="img", disable=not progress)
-
-    def record(file, role, leds, rot, rep, exposure, iso, aperture, digest, when, **extra):
-        man.images.append(ImageEntry(file=file, role=role, leds=list(leds), rotation=rot, repeat=rep,
-                                     exposure_s=exposure, iso=iso, aperture=aperture, time=when.isoformat(),
-                                     sha256=digest, extra=extra))
-        man.save()
-        bar.update(1)
-
-    for rot in rotations:
-        vr.set_rotation(rot)
-        tag = rot_tag(rot)
-        vr.switch(rig.led_ids())
-        when = vr.now()
-        f = f"calibration_{tag}.dng"
-        d = vr.shoot(out / f, rig.calibration_time_s, rig.calibration_iso, rig.calibration_aperture)
-        record(f, "calibration", rig.led_ids(), rot, 0, rig.calibration_time_s, rig.calibration_iso,
-               rig.calibration_aperture, d, when)
-        for led in led_ids:
-            vr.switch([led])
-            if keep_exr:
-                write_exr(out / "linear" / f"led{led:02d}_{tag}.exr", vr.led_radiance(led))
-            for rep in range(repeats):
-                for k, t in enumerate(times):
-                    when = vr.now()
-                    f = f"seq_{tag}_led{led:02d}_rep{rep}_e{k:02d}.dng"
-                    d = vr.shoot(out / f, t, rig.sequence_iso, rig.sequence_aperture)
-                    record(f, "sequence", [led], rot, rep, t, rig.sequence_iso, rig.sequence_aperture, d, when,
-                           exposure_index=k)
-    bar.close()
-    truth = vr.truth()
-    truth["leds"] = led_ids
-    truth["rotations"] = list(rotations)
-    truth["repeats"] = repeats
-    atomic_write_json(out / TRUTH, truth)
-    man.complete = True
-    man.save()
+    camera = TwinCamera(vr, {"leds": list(led_ids), "rotations": list(rotations), "repeats": int(repeats)})
+    meta = {"source": "glossrig twin", "scale": scale, OPTIONS_KEY: options}
+    run_capture(plan, out, lights=TwinLights(vr), camera=camera, operator=TwinOperator(vr),
+                backends={"lights": "twin", "camera": "twin"}, resume=resuming,
+                show_progress=progress_enabled(progress), meta=meta)
+    if keep_exr:
+        for rot in rotations:
+            vr.set_rotation(rot)
+            for led in led_ids:
+                f = out / "linear" / f"led{led:02d}_rot{rotation_tag(rot)}.exr"
+                if not f.exists():
+                    write_exr(f, vr.led_radiance(led))
     return out
 
 
@@ -164,40 +226,65 @@ def _rot_z(a):
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
 
 
-def simulate_checkerboard(rig, out: Path, scale: float, seed: int, views: int, spp: int, progress: bool) -> Path:
+def simulate_checkerboard(rig, out: Path, scale: float, seed: int, views: int, spp: int, progress: bool,
+                          options: dict | None = None, resume: bool = False) -> Path:
+    """Checkerboard views for intrinsic calibration. Each view's render seed, noise stream
+    and time depend only on its number, so ``resume`` (keep the recorded views whose
+    files match their sha256, re-make the rest) ends byte-identical to one run."""
     from .dng import write_dng
     from .render import LensMap, render_array
     from .scene import SceneSpec, checkerboard_scene, new_workdir
     from .sensor import SensorModel
     from .virtual_rig import T0, SHOT_OVERHEAD_S
     from datetime import timedelta
+    from glossrig.core.capture import atomic_write_bytes
 
     lens = LensMap.build(rig.camera, scale)
     sensor = SensorModel.from_rig(rig)
     R, t = rig.camera.pose()
     spec = SceneSpec(sample_radius=rig.cylinder_radius, camera_R=R, camera_t=t, canvas=lens.canvas,
                      focal=lens.focal, spp=lens.canvas_spp(max(spp, 8)))
-    man = Manifest(folder=out, rig=str(Path(rig.path).resolve()), material="checkerboard",
-                   meta={"rig_name": rig.name, "source": "glossrig twin", "scale": scale})
+    rig_bytes = Path(rig.path).read_bytes()
+    done: dict[int, ImageEntry] = {}
+    if resume:
+        man = load_manifest(out)
+        if (out / RIG_COPY).is_file() and (out / RIG_COPY).read_bytes() != rig_bytes:
+            raise InputError(f"--resume: the rig description differs from the capture's copy {out / RIG_COPY}; "
+                             "refusing to mix rigs in one capture", path=out)
+        for im in man.images:
+            f = out / im.file
+            if im.role == "checkerboard" and f.is_file() and sha256_file(f) == im.sha256:
+                done.setdefault(int(im.extra.get("view", -1)), im)
+        man.complete = False
+    else:
+        man = Manifest(folder=out, rig=RIG_COPY, material="checkerboard",
+                       meta={"rig_name": rig.name, "rig_source": str(Path(rig.path).resolve()),
+                             "source": "glossrig twin", "scale": scale, OPTIONS_KEY: dict(options or {})})
+    atomic_write_bytes(out / RIG_COPY, rig_bytes)
     poses = checkerboard_poses(rig, lens, views, seed)
     exposure, iso, aperture = 1 / 30, rig.sequence_iso, rig.sequence_aperture
     cam = rig.camera
-    clock = 0.0
+    man.images = [done[k] for k in sorted(done) if 0 <= k < views]
+    man.save()
     with new_workdir() as wd:
-        for k, (Rb, tb) in enumerate(tqdm(poses, desc="checkerboard", unit="view", disable=not progress)):
+        for k, (Rb, tb) in enumerate(tqdm(poses, desc="checkerboard", unit="view", disable=not progress_enabled(progress))):
+            if k in done:
+                continue
+            f = image_stem("checkerboard", view=k) + ".dng"
+            for stale in (out / f, *out.glob(f".{f}.*.part")):    # unrecorded or half-written: re-made
+                stale.unlink(missing_ok=True)
             scene = checkerboard_scene(rig, spec, Rb, tb, Path(wd))
             rad = lens.apply(render_array(scene, seed=seed * 100 + k))
             rng = np.random.default_rng([seed, 3, k])
             mosaic = sensor.expose(rad, exposure, iso, aperture, rng)
-            when = T0 + timedelta(seconds=clock)
-            f = f"checker_{k:02d}.dng"
+            when = T0 + timedelta(seconds=k * (exposure + SHOT_OVERHEAD_S))
             d = write_dng(out / f, mosaic, cfa=cam.cfa, black_level=cam.black_level, white_level=cam.white_level,
                           exposure_s=exposure, iso=iso, aperture=aperture, time=when)
             man.images.append(ImageEntry(file=f, role="checkerboard", leds=[], rotation=0.0, repeat=0,
                                          exposure_s=exposure, iso=iso, aperture=aperture, time=when.isoformat(),
                                          sha256=d, extra={"view": k}))
+            man.images.sort(key=lambda im: int(im.extra.get("view", 0)))
             man.save()
-            clock += exposure + SHOT_OVERHEAD_S
     truth = {"target": "checkerboard", "scale": scale, "seed": seed, "image_size": list(lens.size),
              "camera_matrix": lens.K.tolist(), "distortion": list(cam.distortion),
              "board_poses_in_holder": [{"R": Rb.tolist(), "t_mm": tb.tolist()} for Rb, tb in poses],

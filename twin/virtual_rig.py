@@ -11,7 +11,11 @@ A simulated capture clock advances by each shot's exposure plus the rig's
 per-shot overhead (thesis 4.2.3: ~4 min per 18-exposure sequence whose
 exposures sum to 61.0 s, i.e. ~9.9 s per shot), so the LED drift and the
 manifest's timestamps follow the real capture's time line. The clock starts at
-:data:`T0` so captures are reproducible.
+:data:`T0` so captures are reproducible. A capture driven by a plan (the
+orchestrator's twin backends, which ``glossrig simulate`` uses too) gives each
+shot its place in the plan - its time on the plan's schedule and its identity
+for its own random stream - so a resumed capture is byte-identical to an
+uninterrupted one.
 """
 from __future__ import annotations
 
@@ -80,11 +84,23 @@ class VirtualRig:
     def now(self) -> datetime:
         return T0 + timedelta(seconds=self.clock_s)
 
-    def shoot(self, path, exposure_s: float, iso: int, aperture: float, overwrite: bool = False) -> str:
-        """Expose the current light state and write a DNG; returns its sha256."""
-        from .dng import write_dng
+    def shoot(self, path, exposure_s: float, iso: int, aperture: float, overwrite: bool = False, *,
+              image: dict | None = None, at_s: float | None = None) -> str:
+        """Expose the current light state and write a DNG; returns its sha256.
 
-        rng = frame_rng(self.seed, self.frame)
+        ``image``: what the image is in its plan (``role``, ``rotation``, ``leds``,
+        ``repeat``, ``exposure_index``, ``view``; :func:`glossrig.twin.sensor.image_rng`);
+        its noise and LED jitter then come from that image's own random stream. ``at_s``:
+        its time on the plan's schedule (seconds from :data:`T0`), which sets the LED drift
+        and the DNG's timestamp. With both, an image is the same bytes whatever was shot
+        before it in this process (resume). Without them (ad-hoc use) the stream is the
+        process's frame counter and the time its running clock."""
+        from .dng import write_dng
+        from .sensor import image_rng
+
+        if at_s is not None:
+            self.clock_s = float(at_s)
+        rng = image_rng(self.seed, **image) if image is not None else frame_rng(self.seed, self.frame)
         radiance = self.image_radiance(self.on, rng)
         cam = self.rig.camera
         hooks = _DnHooks(self.effects, self._hot, cam)
@@ -130,7 +146,9 @@ class VirtualRig:
                 # Mitsuba's `measured` plugin (RGL RGB data, Dupuy & Jakob 2018) can return
                 # negative values where its RGB interpolation overshoots near grazing angles;
                 # radiance cannot be negative, so these are clamped and counted in the truth.
-                self.clamped_pixels[(led_id, self.rotation)] = int(neg.any(axis=-1).sum())
+                # keyed like the cache: a rotation-independent render is recorded at rotation 0,
+                # whichever rotation this process happened to render it at (resume-stable truth)
+                self.clamped_pixels[key] = int(neg.any(axis=-1).sum())
                 np.maximum(img, 0.0, out=img)
             f = self.effects.emission_factor(led_id, pos, self.points_mm())
             if f is not None:
@@ -168,7 +186,8 @@ class VirtualRig:
             "sample_rotation_offset_deg": self.effects.get("sample_rotation_offset"),
             "effects": self.effects.to_json(),
             "shot_overhead_s": SHOT_OVERHEAD_S, "clock_start": T0.isoformat(),
-            "negative_radiance_pixels_clamped": {f"led{k[0]}_rot{k[1]:g}": v for k, v in self.clamped_pixels.items()},
+            "negative_radiance_pixels_clamped": {f"led{k[0]}_rot{k[1]:g}": v
+                                                 for k, v in sorted(self.clamped_pixels.items())},
         }
 
 

@@ -5,8 +5,14 @@ Parameters (all RGB or float): ``rho_d``, ``rho_s``, ``alpha_x``, ``alpha_y``,
 sample rotation of thesis 4.3.5. The tangent frame is the one of 4.3.5: Mitsuba's
 shading frame on the ``cylinder`` shape has ``s = dp/du``, which runs around the
 cylinder, i.e. ``s = axis x normal`` (eq. 4.61); the sample rotation turns it
-about the normal (eq. 4.62). ``glossrig.core.ward`` is the independent numpy
-evaluation the tests compare against.
+about the normal (eq. 4.62). The formula is glossrig's one Ward evaluation,
+:func:`glossrig.core.ward.ward_parts`, written in Dr.Jit (the lobe's slopes
+``hx / hz, hy / hz`` in the lobe's axes, the exponent capped at
+:data:`glossrig.core.ward.EXPONENT_CAP`); :func:`glossrig.core.ward.ward_local` is
+its numpy reference in the tests. The one departure: the normalisation
+``1 / sqrt(cos th_i cos th_o)`` is guarded by ``max(., 1e-12)``, since in single
+precision the product of two grazing cosines can underflow to 0 (core's double
+precision evaluation needs no guard above the horizon).
 
 Sampling: a one-sample mixture of cosine-weighted diffuse sampling and Ward's
 half-vector sampling (Walter, "Notes on the Ward BRDF", 2005), chosen with
@@ -16,6 +22,8 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+
+from glossrig.core.ward import EXPONENT_CAP
 
 PLUGIN = "glossrig_ward"
 _registered = False
@@ -56,7 +64,7 @@ class WardBSDF(mi.BSDF):
     def _spec(self, wi, wo):
         h = dr.normalize(wi + wo)
         hx, hy = self._lobe_xy(h)
-        e = -(dr.square(hx / self.alpha_x) + dr.square(hy / self.alpha_y)) / dr.square(h.z)
+        e = -dr.minimum((dr.square(hx / self.alpha_x) + dr.square(hy / self.alpha_y)) / dr.square(h.z), EXPONENT_CAP)
         denom = 4.0 * dr.pi * self.alpha_x * self.alpha_y * dr.sqrt(dr.maximum(wi.z * wo.z, 1e-12))
         return dr.exp(e) / denom, h
 

@@ -37,7 +37,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from glossrig.core.capture import capture_complete
+from glossrig.core.capture import capture_complete, load_manifest
 
 ROOT = Path(__file__).resolve().parents[1]
 RIG = ROOT / "scenes/thesis_rig.toml"
@@ -192,7 +192,7 @@ def edge_offsets_at_truth(capture: Path, rig) -> dict:
     t = json.loads((capture / "truth.json").read_text())
     K, dist = np.array(t["camera_matrix"]), np.array(t["distortion"])
     R, tt = np.array(t["camera_R_holder_to_camera"]), np.array(t["camera_t_mm"])
-    fr = read_raw(capture / "calibration_rp000.dng")
+    fr = read_raw(capture / load_manifest(capture).select("calibration")[0].file)
     lin = linearize(fr)
     cid = channel_index(lin.shape, fr.cfa)
     from glossrig.core.markers import cylinder_marker_corners, holder_marker_corners

@@ -70,6 +70,8 @@ def subset(src: Path, dst: Path, leds: list[int]) -> Path:
     """A capture folder with only the calibration image and ``leds``' sequences of ``src``."""
     d = json.loads((src / "capture.json").read_text())
     d["images"] = [im for im in d["images"] if im["role"] != "sequence" or im["leds"][0] in leds]
+    # the manifest's rig may be relative to its folder (captures hold a rig.toml copy): point at the original
+    d["rig"] = str((src / d["rig"]).resolve())
     dst.mkdir(parents=True, exist_ok=True)
     for im in d["images"]:
         link = dst / im["file"]
@@ -84,7 +86,7 @@ def subset(src: Path, dst: Path, leds: list[int]) -> Path:
 STAGES = [  # (label, module, attribute); nested ones are subtracted from their parent
     ("geometry", "glossrig.core.extract", "rotation_geometry"),
     ("poses", "glossrig.core.poses", "calibrate_capture"),
-    ("raw_read", "glossrig.core.extract", "read_raw"),
+    ("raw_read", "glossrig.core.raw", "read_raw"),     # via Manifest.read_raw (checksum + decode)
     ("linearise_stack", "glossrig.core.hdr", "stack_frames"),
     ("hdr", "glossrig.core.hdr", "hdr_from_stack"),
     ("patch_blocks", "glossrig.core.extract", "normalise_by_patch"),
@@ -149,7 +151,7 @@ def measure(sample: Path, reference: Path, camera: Path, out_json: Path) -> None
 LABELS = {
     "poses": "calibration image: read, demosaic, markers, poses (eq. 4.1-4.25)",
     "geometry_rest": "crop, white-patch mask, ray casting (eq. 4.26-4.30)",
-    "raw_read": "raw read + crop (rawpy, EXIF checks)",
+    "raw_read": "raw read + crop (sha256 check, rawpy, EXIF checks)",
     "linearise_stack": "linearise + combine repeats (eq. 4.1-4.2, 4.31)",
     "hdr": "neighbour correction + HDR (eq. 4.32-4.44)",
     "patch_blocks": "patch normalisation + Bayer-block values (eq. 4.45-4.50)",

@@ -4,18 +4,18 @@ different commits; each study records them and states them in its report."""
 from __future__ import annotations
 
 import json
-import subprocess
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def code_version() -> dict:
-    """The commit the working tree is at, and whether core/ or twin/ differ from it."""
-    def git(*args):
-        return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True).stdout.strip()
-    return {"commit": git("rev-parse", "--short", "HEAD"),
-            "dirty": bool(git("status", "--porcelain", "--untracked-files=no", "--", "core", "twin"))}
+def code_version() -> dict | None:
+    """The commit the working tree is at, and whether core/ or twin/ differ from it
+    (:func:`glossrig.core.provenance.source_revision`, the one implementation that
+    outputs record too); None when the code does not run from a git checkout."""
+    from glossrig.core.provenance import source_revision
+
+    return source_revision(paths=("core", "twin"), short=True)
 
 
 def describe(v: dict | None) -> str:

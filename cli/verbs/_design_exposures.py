@@ -14,10 +14,14 @@ plan (table 4.1, three sequences per LED).
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 
+from glossrig.cli.outputs import add_force_option, prepare_output
 from glossrig.core.errors import InputError
+
+_log = logging.getLogger(__name__)
 
 HELP = "per-LED exposures keeping the HDR noise within a target at least capture time; writes a capture plan"
 
@@ -25,7 +29,8 @@ HELP = "per-LED exposures keeping the HDR noise within a target at least capture
 def add_arguments(p) -> None:
     p.add_argument("--rig", required=True, help="rig file (scenes/*.toml)")
     p.add_argument("--material", required=True,
-                   help="extended-Ward or Lambertian material: a scenes/materials name, ward:..., lambert:ALBEDO")
+                   help="extended-Ward or Lambertian material: a scenes/materials name, ward:... (lobe_rotation "
+                        "in radians, or 140deg / 2.44rad), lambert:ALBEDO")
     p.add_argument("--out", required=True, help="capture plan to write (.toml)")
     p.add_argument("--leds", default="middle", help="LEDs: middle (default, the thesis's), all, a row or ids")
     p.add_argument("--rotations", default=None, help="sample rotations, degrees (default: the rig's)")
@@ -49,11 +54,17 @@ def add_arguments(p) -> None:
                    help="seconds per shot beyond the exposure (default: the rig's [capture] figure, else the "
                         "thesis's measured 9.94 s)")
     p.add_argument("--sample", default=None, help="material label for the plan (default: the material)")
+    p.add_argument("--seed", type=int, default=1,
+                   help="noise seed of the twin when the plan is captured with --lights twin --camera twin "
+                        "(written to the plan's [twin] table with the material and --capture-scale; default 1)")
     p.add_argument("--report", default=None, help="also write the per-LED figures as JSON here")
+    add_force_option(p, "existing --out and --report files")
 
 
-def plan_text(plan, rig_path: str, sample: str, leds, overhead_s: float) -> str:
-    """The capture plan TOML of an :class:`~glossrig.core.exposure_plan.ExposurePlan`."""
+def plan_text(plan, rig_path: str, sample: str, leds, overhead_s: float, twin: dict | None = None) -> str:
+    """The capture plan TOML of an :class:`~glossrig.core.exposure_plan.ExposurePlan`, with
+    a ``[twin]`` table (``twin``: material, scale, seed) so that the plan captured with the
+    twin backends renders the material it was designed for, at the planned scale."""
     def num(x):
         return repr(float(x))
 
@@ -80,17 +91,24 @@ def plan_text(plan, rig_path: str, sample: str, leds, overhead_s: float) -> str:
         "[led_exposures_s]",
     ]
     lines += [f"{led} = [" + ", ".join(num(t) for t in per[led]) + "]" for led in leds]
+    if twin:
+        lines += ["", "[twin]                             # read by the twin backends (--lights twin --camera twin)"]
+        lines += [f"{k} = {json.dumps(v)}" for k, v in twin.items()]
     return "\n".join(lines) + "\n"
 
 
 def run(args) -> int:
-    from glossrig.core.exposure_plan import GAIN_TARGET, THESIS_JITTER, plan_exposures
+    from glossrig.core.exposure_plan import GAIN_TARGET, THESIS_JITTER, plan_exposures, white_patch_warnings
     from glossrig.core.materials import parse_material
-    from glossrig.core.rig import REPO_ROOT, load_rig
+    from glossrig.core.resources import packaged_reference
+    from glossrig.core.rig import load_rig
     from glossrig.hardware.plan import THESIS_OVERHEAD_S, THESIS_SEQUENCE_S, format_duration, load_plan
 
     from .design import _floats
 
+    out = prepare_output(args.out, args.force)
+    if args.report:
+        prepare_output(args.report, args.force)
     rig = load_rig(args.rig)
     material = parse_material(args.material)
     leds = rig.select_leds(args.leds)
@@ -100,18 +118,18 @@ def run(args) -> int:
         overhead = float(rig.raw.get("capture", {}).get("overhead_s_per_shot", THESIS_OVERHEAD_S))
     if not (math.isfinite(overhead) and overhead >= 0):
         raise InputError(f"--overhead must be >= 0 s, got {overhead}")
-    out = Path(args.out)
-    if not out.parent.is_dir():
-        raise InputError("output folder does not exist", path=out)
     plan = plan_exposures(rig, material, leds, rots, noise_target=args.noise, margin=args.margin, scale=args.scale,
                           overhead_s=overhead, jitter=THESIS_JITTER if args.jitter is None else args.jitter,
                           gain_target=GAIN_TARGET if args.gain_noise is None else args.gain_noise,
                           capture_scale=args.capture_scale)
-    rig_ref = Path(args.rig).resolve()
-    if not Path(args.rig).is_absolute() and (REPO_ROOT / args.rig).resolve() == rig_ref:
-        rig_ref = Path(args.rig)           # repository-relative: the plan loader finds it from anywhere
-    out.write_text(plan_text(plan, str(rig_ref), args.sample or material.label, leds, overhead))
+    # A packaged rig as scenes/NAME (the plan loader finds it from anywhere, installed or
+    # not); any other rig by its absolute path.
+    rig_ref = packaged_reference(rig.path) or Path(rig.path).resolve()
+    twin = {"material": args.material.strip(), "scale": float(args.capture_scale), "seed": int(args.seed)}
+    out.write_text(plan_text(plan, str(rig_ref), args.sample or material.label, leds, overhead, twin=twin))
     loaded = load_plan(out)            # the hardware layer must accept what it is given
+    for msg in white_patch_warnings(rig, plan.exposures(), where=str(out)):
+        _log.warning(msg)
     est = loaded.estimate()
     n_rot = len(rots)
     full_floor = len(leds) * 3 * sum(THESIS_SEQUENCE_S)

@@ -2,7 +2,9 @@
 
 Sub-verbs:
   camera    intrinsics (fx fy cx cy, k1 k2 p1 p2 k3) from a folder of checkerboard views
-  geometry  holder and cylinder poses from a capture's calibration image
+  geometry  holder and cylinder poses from a capture's calibration image (a diagnostic:
+            extract and diagnose solve the same poses from each rotation's
+            calibration image themselves and read no geometry.json)
 
 Examples (twin, quarter resolution):
   glossrig simulate --target checkerboard --views 12 --scale 0.25 --seed 1 --out checker
@@ -16,6 +18,8 @@ creates its parser and sets ``func``; it is picked up in definition order.
 from __future__ import annotations
 
 import argparse
+
+from glossrig.cli.outputs import add_force_option, prepare_output
 
 HELP = "calibrate the camera (checkerboard) or a capture's geometry (markers)"
 
@@ -43,12 +47,15 @@ def sub_camera(sub) -> None:
     p.add_argument("--square", type=float, default=None, help="square size in mm (default: the rig's)")
     p.add_argument("--min-views", type=int, default=None, help="fewest usable views accepted (default 5)")
     p.add_argument("--plot", default=None, help="also write a PNG of per-view errors and residuals")
-    p.add_argument("--force", action="store_true", help="replace an existing --out file")
+    add_force_option(p, "existing --out and --plot files")
     p.add_argument("--no-progress", action="store_true")
 
     def run(args) -> int:
         from glossrig.core.intrinsics import MIN_VIEWS, calibrate_intrinsics, plot_calibration, save_camera
 
+        prepare_output(args.out, args.force)
+        if args.plot:
+            prepare_output(args.plot, args.force)
         cal, report = calibrate_intrinsics(args.checker_dir, _parse_board(args.board), args.square,
                                            min_views=args.min_views or MIN_VIEWS, progress=not args.no_progress)
         save_camera(cal, report, args.out, overwrite=args.force)
@@ -69,10 +76,15 @@ def sub_camera(sub) -> None:
 
 
 def sub_geometry(sub) -> None:
-    p = sub.add_parser("geometry", help="holder and cylinder poses from a capture's calibration image",
+    p = sub.add_parser("geometry", help="holder and cylinder poses from a capture's calibration image "
+                                        "(diagnostic: for checking; extract does not read its output)",
                        description="Find the holder marker and the three cylinder markers in the calibration "
                                    "image, solve their poses (PnP, refined on the raw edges) and express the "
-                                   "cylinder and camera in the holder frame (thesis eq. 4.18-4.25).")
+                                   "cylinder and camera in the holder frame (thesis eq. 4.18-4.25). "
+                                   "A diagnostic step: glossrig extract and glossrig diagnose solve the same "
+                                   "poses from each rotation's calibration image themselves and read no "
+                                   "geometry JSON; use this to check the markers and poses (--diagnostic draws "
+                                   "them) before measuring.")
     p.add_argument("capture_dir", help="capture folder (capture.json + raw files)")
     p.add_argument("--camera", required=True, help="camera calibration JSON (glossrig calibrate camera)")
     p.add_argument("--out", required=True, help="geometry JSON to write")
@@ -80,13 +92,17 @@ def sub_geometry(sub) -> None:
     p.add_argument("--diagnostic", default=None, help="PNG with markers, corners, fitted edges and pose axes")
     p.add_argument("--holder-edges", choices=["inner", "all"], default="inner",
                    help="holder-marker edges fitted in the refinement (default: the white patch's)")
-    p.add_argument("--force", action="store_true", help="replace an existing --out file")
+    add_force_option(p, "existing --out and --diagnostic files")
 
     def run(args) -> int:
         import cv2
         import numpy as np
 
         from glossrig.core.poses import calibrate_capture, save_geometry
+
+        prepare_output(args.out, args.force)
+        if args.diagnostic:
+            prepare_output(args.diagnostic, args.force)
 
         res = calibrate_capture(args.capture_dir, args.camera, rotation=args.rotation, diagnostic=args.diagnostic,
                                 holder_edge_set=args.holder_edges)
@@ -125,12 +141,14 @@ def sub_lamps(sub) -> None:
     p.add_argument("specular_dir", help="capture folder of the specular sample")
     p.add_argument("--camera", required=True, help="camera.json from glossrig calibrate camera")
     p.add_argument("--out", required=True, help="lamps.json to write")
+    add_force_option(p, "an existing --out file")
     p.add_argument("--no-progress", action="store_true")
 
     def run(args) -> int:
         from glossrig.core.intrinsics import load_camera
         from glossrig.core.lamps import calibrate_lamps, save_lamps
 
+        prepare_output(args.out, args.force)
         d = calibrate_lamps(args.specular_dir, load_camera(args.camera), progress=not args.no_progress)
         save_lamps(d, args.out)
         for k, v in d["lamps_mm"].items():

@@ -2,10 +2,14 @@
 from __future__ import annotations
 
 import argparse
-import sys
+import logging
 from pathlib import Path
 
+from glossrig.cli.logs import LogStream
+from glossrig.cli.outputs import prepare_output
 from glossrig.hardware.plan import PLAN_FORMAT
+
+_log = logging.getLogger(__name__)
 
 HELP = "run a capture plan on the twin or the real rig (LEDs, camera); resumable, LEDs always end off"
 
@@ -35,7 +39,8 @@ Devices:
 Resume: after a crash, a power cut, a camera that dropped off USB or Ctrl-C, rerun the
 same command with --resume: recorded files are checked against their checksums,
 damaged ones moved to DIR/set_aside/, and only what is missing is retaken; no good file
-is ever overwritten. With a real camera the operator is asked to rotate the sample
+is ever overwritten; there is no --force, a capture is never replaced (remove it
+yourself or choose another DIR). With a real camera the operator is asked to rotate the sample
 (--sample-ready: it is already at the first rotation still needed).
 
 --dry-run prints the plan, the sum of its exposure times (the physical floor) and the
@@ -89,21 +94,31 @@ def run(args) -> int:
     from glossrig.hardware.orchestrator import run_capture
     from glossrig.hardware.plan import format_duration, load_plan
 
+    # Before any device is opened: an existing capture needs --resume, and DIR must be writable.
+    from glossrig.core.capture import MANIFEST
+    from glossrig.core.errors import InputError
+
+    has_capture = (args.out / MANIFEST).is_file()
+    if has_capture and not args.resume:
+        raise InputError("already holds a capture; rerun with --resume to complete it, or choose another "
+                         "--out (nothing was changed)", path=args.out)
+    prepare_output(args.out, kind="folder", resume=has_capture,
+                   hint="holds no capture manifest (capture.json); choose another --out (nothing was changed)")
     plan = load_plan(args.plan)
     est = plan.estimate()
-    print(f"capture of {plan.sample!r}: {est.shots} images planned, about {format_duration(est.estimate_s)} "
-          f"(exposures alone {format_duration(est.exposure_s)})", file=sys.stderr)
+    _log.info(f"capture of {plan.sample!r}: {est.shots} images planned, about {format_duration(est.estimate_s)} "
+              f"(exposures alone {format_duration(est.exposure_s)})")
     dev = make_backends(plan, args.lights, args.camera, relay_port=args.relay_port,
                         relay_channels=args.relay_channels, sample_ready=args.sample_ready)
     try:
         report = run_capture(plan, args.out, lights=dev.lights, camera=dev.camera, operator=dev.operator,
                              backends=dev.names, resume=args.resume, show_progress=not args.no_progress,
-                             min_free_bytes=int(args.min_free_mb * 2 ** 20))
+                             min_free_bytes=int(args.min_free_mb * 2 ** 20), log=LogStream(_log))
     finally:
         try:
             dev.close()
         except Exception as e:   # noqa: BLE001 - never hide the capture's own outcome
-            print(f"glossrig capture: warning: closing the devices failed: {e}", file=sys.stderr)
+            _log.warning(f"closing the devices failed: {e}")
     taken = f"{report.taken} taken" + (f", {report.kept} kept from before" if args.resume else "")
     aside = f"; {len(report.set_aside)} file(s) moved to {args.out / 'set_aside'}" if report.set_aside else ""
     print(f"capture complete: {report.planned} images in {args.out} ({taken}{aside})")

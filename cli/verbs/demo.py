@@ -1,21 +1,39 @@
-"""The main job: simulate a capture on the virtual rig, run the pipeline, fit, and report
-how well the ground truth was recovered.
+"""The main job: simulate captures on the virtual rig, measure them with ``glossrig
+measure``, and report how well the ground truth was recovered.
 
-Steps (each is a glossrig verb a user can run alone):
-  1. checkerboard views on the twin        -> glossrig calibrate camera
-  2. a transparency-sheet capture          -> glossrig calibrate lamps   (thesis 4.3.4)
+Steps:
+  1. checkerboard views on the twin                 (glossrig simulate --target checkerboard)
+  2. a transparency-sheet capture                   (glossrig simulate, thesis 4.3.4)
   3. a lambert:0.8 reference capture and a capture of MATERIAL (middle-row LEDs, the 18
      exposures of Table 4.1, the rig's LED fluctuations and sensor noise, real DNGs)
-                                           -> glossrig extract           (thesis 4.3-4.4)
-  4. the extended-Ward fit                 -> glossrig fit               (thesis 4.5)
-  5. the fitted parameters against the truth the twin recorded in truth.json.
-Finished steps are reused when the demo is run again with the same --out.
+  4. glossrig measure on them, in OUT itself: calibrate camera and lamps, extract
+     (thesis 4.3-4.4), fit (thesis 4.5), exports, renders of the fitted material, the
+     recovery table (OUT/recovery.json: the calibrations and the fit against the truth
+     the twin recorded) and the report (OUT/report.html, OUT/report.md)
+  5. the recovery table printed.
+
+Rerunning with the same --out: each simulation step records in OUT/.steps/STEP.json what
+it was run with (its full argv, the sha256 of its input files and the glossrig version)
+and the sha256 of what it wrote, and glossrig measure keeps its own step records there
+(see glossrig measure --help; the one mechanism is glossrig.cli.steps). With --resume a
+finished step is reused only when all of that matches (an output edited since is
+redone), so another --material re-simulates the sample and redoes extract, fit, exports,
+renders and report but keeps the checkerboard, camera, specular, lamps and reference
+steps, and another --scale redoes everything. A simulation that was interrupted with the
+same inputs is continued with simulate's own --resume; otherwise whatever it left is
+removed and it is redone. --force starts over (every step redone). With neither option
+an existing non-empty --out is refused, naming both.
 """
 from __future__ import annotations
 
 import argparse
+import logging
 
-HELP = "simulate, calibrate, extract and fit on the virtual rig; report ground-truth recovery"
+from glossrig.cli.outputs import add_force_option, prepare_output
+
+_log = logging.getLogger(__name__)
+
+HELP = "simulate captures on the virtual rig, measure them (glossrig measure); report ground-truth recovery"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -24,67 +42,126 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scale", type=float, default=0.25)
     p.add_argument("--rotations", default="0")
     p.add_argument("--seed", type=int, default=1)
+    add_force_option(p, "every earlier result in --out: redo all steps instead of reusing the finished ones")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the demo in --out: reuse the finished steps whose recorded inputs match, "
+                        "complete an interrupted one, redo the rest")
+
+
+def _accepts_resume(words: list[str]) -> bool:
+    """True when ``glossrig WORDS...`` has a --resume option."""
+    from glossrig.cli.main import build_parser
+
+    p = build_parser()
+    for w in words:
+        sub = next((a for a in p._actions if isinstance(a, argparse._SubParsersAction)), None)
+        if sub is None or w not in sub.choices:
+            return False
+        p = sub.choices[w]
+    return "--resume" in p._option_string_actions
+
+
+def _dispatch(argv: list[str]) -> int:
+    """Run one step as ``glossrig ARGV`` (a seam the tests replace)."""
+    from glossrig.cli.main import main
+
+    return main(argv)
+
+
+def _material_file(spec: str):
+    """The file a --material spec reads, when it reads one (its content is a step input)."""
+    from pathlib import Path
+
+    from glossrig.core.materials import MATERIALS_DIR
+
+    if spec.startswith("measured:"):
+        p = Path(spec[len("measured:"):])
+        return p if p.is_file() else None
+    if ":" in spec:
+        return None
+    p = MATERIALS_DIR / f"{spec}.toml"
+    return p if p.is_file() else None
+
+
+def _sim_step(steps, out, rig, name: str, argv: list, files: dict, chatter: list) -> None:
+    """``glossrig simulate ARGV`` as step ``name`` writing the capture ``OUT/name``."""
+    from pathlib import Path
+
+    from glossrig.core.errors import GlossrigError
+
+    def shown(a) -> str:
+        """An argument as recorded: paths inside --out relative to it, the rig by name (its content is hashed)."""
+        if isinstance(a, Path):
+            if a == rig:
+                return "RIG"
+            try:
+                return "OUT/" + a.relative_to(out).as_posix()
+            except ValueError:
+                return str(a)
+        return str(a)
+
+    line = " ".join(shown(a) for a in argv)
+
+    def compute(resume: bool) -> None:
+        flag = "--resume" if resume else "--force"
+        _log.info(f"glossrig {line} {flag}")
+        rc = _dispatch([str(a) for a in [*argv, flag, *chatter]])
+        if rc == 130:               # the step was interrupted (Ctrl-C): so is the demo; --resume continues
+            raise KeyboardInterrupt
+        if rc != 0:
+            raise GlossrigError(f"demo step failed: glossrig {line}")
+
+    words = [a for a in argv[:2] if not str(a).startswith("-") and not isinstance(a, Path)]
+    steps.run(name, out / name, compute, files=files, options={"argv": [shown(a) for a in argv]},
+              resumable=_accepts_resume(words))
 
 
 def run(args) -> int:
     import json
-    import math
-    from pathlib import Path
 
-    from glossrig.cli.main import main as glossrig
-    from glossrig.core.errors import GlossrigError
+    from glossrig.cli.steps import StepRunner
+    from glossrig.core.errors import GlossrigError, InputError
+    from glossrig.core.recovery import format_recovery
     from glossrig.core.rig import default_rig_path
 
-    out = Path(args.out)
+    if args.force and args.resume:
+        raise InputError("--resume continues the demo in --out, --force starts it over: give one of them")
+    out = prepare_output(args.out, args.force, kind="folder", resume=args.resume,
+                         hint="use --resume to continue it (finished steps whose inputs match are reused) "
+                              "or --force to start over")
     out.mkdir(parents=True, exist_ok=True)
-    rig = str(default_rig_path())
-
-    def step(done: Path, *argv):
-        if done.exists():
-            print(f"[demo] reusing {done}")
-            return
-        print(f"[demo] glossrig {' '.join(map(str, argv))}")
-        if glossrig([str(a) for a in argv]) != 0:
-            raise GlossrigError(f"demo step failed: glossrig {argv[0]}")
+    rig = default_rig_path()
+    chatter = ["-q"] if args.quiet else ["-v"] if args.verbose else []
+    steps = StepRunner(out, resume=args.resume, total=5, log=_log)
 
     def capture(name, material, seed):
-        d = out / name
-        step(d / "truth.json", "simulate", "--rig", rig, "--material", material, "--leds", "middle",
-             f"--rotations={args.rotations}", "--repeats", 1, "--scale", args.scale, "--seed", seed, "--out", d)
-        return d
+        _sim_step(steps, out, rig, name,
+                  ["simulate", "--rig", rig, "--material", material, "--leds", "middle",
+                   f"--rotations={args.rotations}", "--repeats", 1, "--scale", args.scale, "--seed", seed,
+                   "--out", out / name], {"rig": rig, "material": _material_file(material)}, chatter)
+        return out / name
 
-    step(out / "checker" / "truth.json", "simulate", "--rig", rig, "--target", "checkerboard", "--views", 12,
-         "--scale", args.scale, "--seed", args.seed, "--out", out / "checker")
-    step(out / "camera.json", "calibrate", "camera", out / "checker", "--out", out / "camera.json")
+    _sim_step(steps, out, rig, "checker", ["simulate", "--rig", rig, "--target", "checkerboard", "--views", 12,
+                                           "--scale", args.scale, "--seed", args.seed, "--out", out / "checker"],
+              {"rig": rig}, chatter)
     spec = capture("specular", "transparency_sheet", args.seed + 1)
-    step(out / "lamps.json", "calibrate", "lamps", spec, "--camera", out / "camera.json", "--out", out / "lamps.json")
     ref = capture("reference", "lambert:0.8", args.seed + 2)
     sample = capture("sample", args.material, args.seed + 3)
-    step(out / "samples.parquet", "extract", sample, "--reference", ref, "--camera", out / "camera.json",
-         "--lamps", out / "lamps.json", "--out", out / "samples.parquet", "--plots", out / "plots")
-    step(out / "fit.json", "fit", out / "samples.parquet", "--out", out / "fit.json", "--plots", out / "plots")
+    # glossrig measure keeps its own step records in OUT/.steps: --resume reuses what still matches
+    _log.info("step 5/5 measure: glossrig measure OUT/sample --reference OUT/reference --checkerboard OUT/checker "
+              "--specular OUT/specular --out OUT")
+    rc = _dispatch([str(a) for a in ["measure", sample, "--reference", ref, "--checkerboard", out / "checker",
+                                     "--specular", spec, "--out", out, "--force" if args.force else "--resume",
+                                     *chatter]])
+    if rc == 130:
+        raise KeyboardInterrupt
+    if rc != 0:
+        raise GlossrigError("demo step failed: glossrig measure")
 
-    truth = json.loads((sample / "truth.json").read_text())["material"]
-    fit = json.loads((out / "fit.json").read_text())["luminance"]
-    cam = json.loads((out / "camera.json").read_text())
-    K = json.loads((out / "checker" / "truth.json").read_text())["camera_matrix"]
-    lamps = json.loads((out / "lamps.json").read_text())["lamps_mm"]
-    true_leds = json.loads((spec / "truth.json").read_text())["led_positions_mm"]
-    lamp_err = max(math.dist(v, true_leds[k]) for k, v in lamps.items())
-    print("\n[demo] ground-truth recovery on the twin")
-    print(f"  intrinsics: fx {100 * (cam['fx'] / K[0][0] - 1):+.3f} %, fy {100 * (cam['fy'] / K[1][1] - 1):+.3f} %, "
-          f"principal point ({cam['cx'] - K[0][2]:+.2f}, {cam['cy'] - K[1][2]:+.2f}) px")
-    print(f"  lamp positions: worst error {lamp_err:.2f} mm over {len(lamps)} LEDs")
-    if "ward" not in truth:
-        print(f"  material {truth['label']} is not a Ward material; fitted: "
-              + ", ".join(f"{k}={fit[k]:.4g}" for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")))
-        return 0
-    w = truth["ward"]
-    print(f"  {'parameter':<14}{'true':>10}{'fitted':>10}{'error':>10}")
-    for k in ("rho_d", "rho_s", "alpha_x", "alpha_y"):
-        print(f"  {k:<14}{w[k]:>10.4g}{fit[k]:>10.4g}{100 * (fit[k] / w[k] - 1):>+9.1f}%")
-    d = (fit["lobe_rotation"] - w["lobe_rotation"]) % math.pi
-    print(f"  {'lobe_rotation':<14}{w['lobe_rotation']:>10.4g}{fit['lobe_rotation']:>10.4g}"
-          f"{math.degrees(min(d, math.pi - d)):>9.2f} deg")
-    print(f"  results in {out}: fit.json, samples.parquet, plots/")
+    rec = out / "recovery.json"
+    if not rec.is_file():
+        raise GlossrigError(f"glossrig measure wrote no recovery table ({rec}): is {sample} a twin capture?")
+    for line in format_recovery(json.loads(rec.read_text())):
+        print(line)
+    print(f"  results in {out}: report.html, report.md, recovery.json, fit.json, samples.parquet, exports/, plots/")
     return 0

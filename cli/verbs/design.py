@@ -25,21 +25,26 @@ from __future__ import annotations
 
 import importlib
 import json
+import logging
 import math
 import pkgutil
 import sys
 from pathlib import Path
 
+from glossrig.cli.outputs import add_force_option, prepare_output
 from glossrig.core.errors import InputError
+
+_logger = logging.getLogger(__name__)
 
 HELP = "rig design: BRDF-space coverage and LED/rotation optimisation (thesis 7.1.3, 9.1)"
 PRINTED_ISO, PRINTED_ANISO = 0.0098, 0.001      # thesis 7.1.3, fractions
 
 
 def _log(quiet: bool):
+    """Progress messages through the ``glossrig`` logger (``-q`` silences them)."""
     if quiet:
         return lambda msg: None
-    return lambda msg: print(f"[design] {msg}", file=sys.stderr, flush=True)
+    return _logger.info
 
 
 def _floats(text: str, what: str) -> list[float]:
@@ -52,12 +57,14 @@ def _floats(text: str, what: str) -> list[float]:
     return vals
 
 
-def _out_dir(path: str) -> Path:
+def _out_dir(path: str, force: bool = False) -> Path:
+    """Check (glossrig.cli.outputs: refused if not empty unless ``force``) and create an output folder."""
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise InputError("output exists and is not a folder", path=out)
     if not out.parent.is_dir():
         raise InputError("parent folder of the output does not exist", path=out)
+    prepare_output(out, force, kind="folder")
     out.mkdir(exist_ok=True)
     return out
 
@@ -76,7 +83,7 @@ def add_coverage_arguments(p) -> None:
     p.add_argument("--leds", default=None,
                    help="LEDs of the headline figure (default: 'middle' if the rig has a middle row of 8 as the "
                         "thesis measured, else all)")
-    p.add_argument("--quiet", action="store_true")
+    add_force_option(p, "the files in a non-empty --out folder")
 
 
 def run_coverage(args) -> int:
@@ -86,8 +93,9 @@ def run_coverage(args) -> int:
     from glossrig.core.rig import load_rig
 
     say = _log(args.quiet)
+    prepare_output(args.out, args.force, kind="folder")
     rig = load_rig(args.rig)
-    out = _out_dir(args.out)
+    out = _out_dir(args.out, args.force)
     scales = _floats(args.scales, "--scales")
     dists = _floats(args.camera_distances, "--camera-distances") if args.camera_distances else []
     if args.leds:
@@ -275,7 +283,8 @@ def add_optimise_arguments(p) -> None:
     p.add_argument("--rig", required=True, help="rig to improve (also the reference design and the file template)")
     p.add_argument("--leds", type=int, required=True, help="number of LEDs of the design (at most 16 relay channels)")
     p.add_argument("--materials", default=DEFAULT_MATERIALS,
-                   help=f"target extended-Ward materials (names in scenes/materials or ward:... specs), default {DEFAULT_MATERIALS}")
+                   help=f"target extended-Ward materials (names in scenes/materials or ward:... specs, lobe_rotation "
+                        f"in radians or with a unit: 140deg), default {DEFAULT_MATERIALS}")
     p.add_argument("--out", required=True, help="new rig file to write (scenes/*.toml)")
     p.add_argument("--report", metavar="DIR", default=None, help="also write design.json and plots here")
     p.add_argument("--rotations", type=int, default=4, help="number of sample rotations (default 4, as the thesis)")
@@ -294,8 +303,7 @@ def add_optimise_arguments(p) -> None:
     p.add_argument("--noise", default="hdr", help="noise model: hdr[:LED_REL] (default) or relative[:REL]")
     p.add_argument("--final-scale", type=float, default=1.0,
                    help="image scale of the final coverage comparison (default 1.0, full resolution)")
-    p.add_argument("--force", action="store_true", help="overwrite an existing output rig file")
-    p.add_argument("--quiet", action="store_true")
+    add_force_option(p, "an existing output rig file and the files in a non-empty --report folder")
 
 
 def run_optimise(args) -> int:
@@ -306,13 +314,11 @@ def run_optimise(args) -> int:
     from glossrig.core.rig import load_rig
 
     say = _log(args.quiet)
+    out = prepare_output(args.out, args.force)
+    if args.report:
+        prepare_output(args.report, args.force, kind="folder")
     rig = load_rig(args.rig)
-    out = Path(args.out)
-    if out.exists() and not args.force:
-        raise InputError("output rig file exists (use --force to overwrite)", path=out)
-    if not out.parent.is_dir():
-        raise InputError("output folder does not exist", path=out)
-    report = _out_dir(args.report) if args.report else None
+    report = _out_dir(args.report, args.force) if args.report else None
     if args.rotation_step < 1 or 360 % args.rotation_step:
         raise InputError(f"--rotation-step must divide 360, got {args.rotation_step}")
     if args.workers < 0:
@@ -569,7 +575,9 @@ def plot_errors(out: dict, materials, path) -> None:
 
 def add_errors_arguments(p) -> None:
     p.add_argument("--rig", required=True, help="rig file")
-    p.add_argument("--materials", default=DEFAULT_MATERIALS, help=f"extended-Ward materials (default {DEFAULT_MATERIALS})")
+    p.add_argument("--materials", default=DEFAULT_MATERIALS,
+                   help=f"extended-Ward materials (names or ward:... specs, lobe_rotation in radians or with a unit: "
+                        f"140deg; default {DEFAULT_MATERIALS})")
     p.add_argument("--leds", default="all", help="LEDs used: all, middle, a row or ids (default all)")
     p.add_argument("--rotations", default=None, help="sample rotations, degrees (default: the rig's)")
     p.add_argument("--scale", type=float, default=0.25, help="image scale the pixels are counted at (default 0.25)")
@@ -579,12 +587,15 @@ def add_errors_arguments(p) -> None:
                         "normalisation, relative standard deviation, a nuisance parameter common to the "
                         "sequence's pixels (default 0: none; use with --noise hdr:0)")
     p.add_argument("--out", default=None, help="JSON file to write (default: print)")
+    add_force_option(p, "an existing --out file")
 
 
 def run_errors(args) -> int:
     from glossrig.core import design as D
     from glossrig.core.rig import load_rig
 
+    if args.out:
+        prepare_output(args.out, args.force)
     rig = load_rig(args.rig)
     materials = D.parse_materials(args.materials)
     leds = rig.select_leds(args.leds)
@@ -594,13 +605,11 @@ def run_errors(args) -> int:
     doc = {"rig": str(rig.path), "leds": leds, "rotations_deg": rots, "scale": args.scale, "noise": args.noise,
            "gain_noise": args.gain_noise,
            "method": "Fisher information (Cramer-Rao bound), glossrig.core.fisher",
+           "stderr_kind": "noise-only (the --noise model and --gain-noise; excludes calibration and model error)",
            "expected_errors": {lb: e.to_json() for lb, e in errs.items()}}
     text = json.dumps(doc, indent=2) + "\n"
     if args.out:
-        out = Path(args.out)
-        if not out.parent.is_dir():
-            raise InputError("output folder does not exist", path=out)
-        out.write_text(text)
+        Path(args.out).write_text(text)
     else:
         sys.stdout.write(text)
     return 0

@@ -12,11 +12,26 @@ named first (light and geometry cannot bend the raw exposure series).
 Writes REPORT_DIR/report.json ({"base_error", "verdict", "causes": [...]} sorted
 by gain), report.md and the residual plots.
 
+Each finished stage (every LED of the sample and reference measurements, the
+material fit, the BRDF-space causes, the frame-space causes) is kept in the work
+folder REPORT_DIR.partial/ with the sha256 of every input (both manifests, the
+rig, camera, lamps, --fit and --reference-brdf files), the options and the
+glossrig version. An interrupted run continues with the same command plus
+--resume: stages whose recorded inputs match are reused and the report equals an
+uninterrupted run's (meta.time_s apart). Without --resume an earlier work folder
+is discarded. The work folder is removed once the report is written.
+
 example:
   glossrig diagnose cap_sample --reference cap_ref --camera camera.json \\
       --lamps lamps.json --out diag/
 """
 from __future__ import annotations
+
+import logging
+
+from glossrig.cli.outputs import add_force_option, prepare_output
+
+_log = logging.getLogger(__name__)
 
 HELP = "diagnose a capture: residuals, named causes, held-out gain"
 
@@ -31,20 +46,39 @@ def add_arguments(p) -> None:
     p.add_argument("--reference-brdf", default=None,
                    help="the reference's measured BRDF (RGL .bsdf): tests the non-Lambertian reference cause")
     p.add_argument("--out", required=True, help="report folder")
+    add_force_option(p, "the files in a non-empty --out folder")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run: reuse the stages finished in REPORT_DIR.partial/ when "
+                        "their recorded inputs match")
     p.add_argument("--no-progress", action="store_true")
 
 
 def run(args) -> int:
-    from glossrig.core.diagnose import diagnose
+    from pathlib import Path
 
+    from glossrig.core.checkpoint import WorkStore, work_folder_for
+    from glossrig.core.diagnose import diagnose
+    from glossrig.core.extract import measurement_fingerprint
+    from glossrig.core.intrinsics import load_camera
+    from glossrig.core.lamps import load_lamps
+
+    prepare_output(args.out, args.force, kind="folder", resume=getattr(args, "resume", False))
     ref = None
     if args.reference_brdf:
         from glossrig.twin.measured_brdf import MeasuredBRDF
 
         ref = MeasuredBRDF(args.reference_brdf).table
+    # a missing --fit file is left to diagnose's own message; it is hashed only when present
+    extra = {"fit": args.fit if args.fit and Path(args.fit).is_file() else None,
+             "reference_brdf": args.reference_brdf}
+    fp = measurement_fingerprint(args.sample, args.reference, load_camera(args.camera), load_lamps(args.lamps),
+                                 files=extra, estimator="ml", albedo=args.albedo, fit_given=bool(args.fit))
+    store = WorkStore(work_folder_for(args.out), fp, resume=getattr(args, "resume", False),
+                      log=(lambda *a: None) if args.no_progress else _log.info)
     rep = diagnose(args.sample, args.reference, args.camera, args.lamps, args.out, fit=args.fit,
                    albedo=args.albedo, progress=not args.no_progress,
-                   log=(lambda *a: None) if args.no_progress else print, reference_brdf=ref)
+                   log=(lambda *a: None) if args.no_progress else _log.info, reference_brdf=ref, store=store)
+    store.remove()
     print(f"verdict: {rep['verdict']}")
     for c in rep["causes"][:5]:
         print(f"  {c['name']:24s} {c['space']:7s} gain {c['gain']:+.2%}  significant={c['significant']}")

@@ -10,10 +10,25 @@ theta_d, phi_d in radians in the tangent frame of thesis 4.3.5, r, g, b in
 The reference is a diffuse sample captured on the same rig with the same LEDs
 and rotations; it is treated as Lambertian with --reference-albedo (thesis 4.4:
 white paper, 0.8).
+
+Each LED of each capture is kept, once measured, in the work folder OUT.partial/
+(with the sha256 of both manifests, the rig, the camera file, the lamp positions,
+the options and the glossrig version). An interrupted run continues with the same
+command plus --resume: the LEDs whose recorded inputs match are reused, the rest
+are measured, and the table equals an uninterrupted run's. Without --resume an
+earlier work folder is discarded. OUT.partial/ is removed once OUT is written.
+
+The table records its provenance in its Parquet schema metadata (key
+glossrig.provenance; pyarrow.parquet.read_schema(OUT).metadata): the paths and
+sha256 of both manifests (each lists every raw file's sha256), of the rig files,
+camera.json and lamps.json, the options --reference-albedo and --estimator, the
+glossrig version and the git commit of the source tree (null when installed).
 """
 from __future__ import annotations
 
 import argparse
+
+from glossrig.cli.outputs import add_force_option, prepare_output
 
 HELP = "extract BRDF samples from a sample capture and a diffuse reference capture"
 
@@ -28,22 +43,50 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--estimator", choices=["ml", "thesis"], default="ml",
                    help="HDR estimator: maximum likelihood for a shot-noise-limited sensor (default) or eq. 4.44 as printed")
     p.add_argument("--plots", default=None, help="folder for diagnostic images")
+    add_force_option(p, "an existing --out file and a non-empty --plots folder")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run: reuse the LEDs already measured in OUT.partial/ when their "
+                        "recorded inputs match")
     p.add_argument("--no-progress", action="store_true")
+
+
+def _provenance(args) -> dict:
+    """What the table was made from (stored in its Parquet schema metadata): both
+    captures (by their manifests), the rig files they name, the camera and lamp
+    calibrations, the options that change the values, the version and source revision."""
+    from glossrig.core.capture import load_manifest
+    from glossrig.core.provenance import provenance
+
+    return provenance({"sample": args.sample_dir, "reference": args.reference,
+                       "sample_rig": load_manifest(args.sample_dir).rig_path(),
+                       "reference_rig": load_manifest(args.reference).rig_path(),
+                       "camera": args.camera, "lamps": args.lamps},
+                      {"reference_albedo": args.reference_albedo, "estimator": args.estimator},
+                      tool="glossrig extract")
 
 
 def run(args) -> int:
     from pathlib import Path
 
-    from glossrig.core.extract import check_compatible, extract_samples
+    from glossrig.core.checkpoint import WorkStore, work_folder_for
+    from glossrig.core.extract import check_compatible, extract_samples, measurement_fingerprint
     from glossrig.core.intrinsics import load_camera
     from glossrig.core.lamps import load_lamps
     from glossrig.core.samples import write_samples
 
+    resume = getattr(args, "resume", False)
+    prepare_output(args.out, args.force, resume=resume)
+    if args.plots:
+        prepare_output(args.plots, args.force, kind="folder", resume=resume)
     cam = load_camera(args.camera)
     lamps = load_lamps(args.lamps)
     check_compatible(args.sample_dir, args.reference)
+    # the stored units are measurements: the albedo (applied after them) is not among their inputs
+    fp = measurement_fingerprint(args.sample_dir, args.reference, cam, lamps, estimator=args.estimator)
+    store = WorkStore(work_folder_for(args.out), fp, resume=resume)
     df = extract_samples(args.sample_dir, args.reference, cam, lamps, albedo=args.reference_albedo,
-                         estimator=args.estimator, progress=not args.no_progress, plots=args.plots)
-    write_samples(df, Path(args.out))
+                         estimator=args.estimator, progress=not args.no_progress, plots=args.plots, store=store)
+    write_samples(df, Path(args.out), provenance=_provenance(args))
+    store.remove()
     print(f"{len(df)} BRDF samples written to {args.out}")
     return 0

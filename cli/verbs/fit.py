@@ -10,6 +10,15 @@ alpha_y, lobe_rotation, each with <name>_stderr (null when the data do not
 determine it), the covariance, residual statistics and the fit settings; and
 under "mitsuba" a material for the twin's glossrig_ward BSDF.
 
+The standard errors are NOISE-ONLY: they count the per-pixel noise of the
+samples and exclude the calibration and model error, which dominate a real
+measurement; they are not the measurement's uncertainty. Each channel says so
+in "stderr_kind", and the printed summary labels them.
+
+fit.json's "provenance" records the samples file (path, resolved path, sha256)
+with the table's own provenance (captures, calibrations, extract options), the
+fit options, the glossrig version and the git commit of the source tree.
+
 The thesis's fit of section 6.2 is `--clip --weighting none --clip-literal`;
 without --clip-literal the model is clipped too (a censored fit, see
 glossrig.core.fit).
@@ -20,10 +29,13 @@ examples:
 """
 from __future__ import annotations
 
-import sys
+import logging
 from pathlib import Path
 
+from glossrig.cli.outputs import add_force_option, prepare_output
 from glossrig.core.errors import InputError
+
+_log = logging.getLogger(__name__)
 
 HELP = "fit the extended Ward BRDF to a samples table (thesis 4.5)"
 
@@ -46,15 +58,31 @@ def add_arguments(p) -> None:
     p.add_argument("--ignore-weight-column", action="store_true", help="do not use the table's weight column")
     p.add_argument("--starts", type=int, default=4, help="grid starts refined per channel (default 4)")
     p.add_argument("--seed", type=int, default=0, help="seed of the subset choice (default 0)")
-    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    add_force_option(p, "an existing --out or --mitsuba file and a non-empty --plots folder")
+    # -q/--quiet (no progress messages) is added to every verb by glossrig.cli.main
+
+
+def _provenance(args, src: Path, channels: list[str], df) -> dict:
+    """fit.json's provenance: the samples file, its own recorded provenance (the chain
+    back to the captures; null for a table written without one) and every option that
+    changes the fit."""
+    from glossrig.core.provenance import provenance
+
+    prov = provenance({"samples": src},
+                      {"channels": channels, "weighting": args.weighting, "clip": args.clip,
+                       "clip_literal": args.clip_literal, "ignore_weight_column": args.ignore_weight_column,
+                       "starts": args.starts, "seed": args.seed},
+                      tool="glossrig fit")
+    prov["inputs"]["samples"]["provenance"] = df.attrs.get("provenance")
+    return prov
 
 
 def run(args) -> int:
     from glossrig.core.export import write_fit_json, write_mitsuba_material
-    from glossrig.core.fit import CHANNELS, fit_samples
+    from glossrig.core.fit import CHANNELS, STDERR_KIND, fit_samples
     from glossrig.core.samples import read_samples
 
-    log = None if args.quiet else (lambda msg: print(f"[fit] {msg}", file=sys.stderr, flush=True))
+    log = _log.info
     channels = [c.strip() for c in args.channels.split(",") if c.strip()]
     bad = [c for c in channels if c not in CHANNELS]
     if bad or not channels:
@@ -65,38 +93,46 @@ def run(args) -> int:
         raise InputError(f"--clip level must be > 0, got {args.clip}")
     src = Path(args.samples)
     out = Path(args.out) if args.out else src.with_suffix(".fit.json")
-    if not out.parent.is_dir():
-        raise InputError("output folder does not exist", path=out)
+    prepare_output(out, args.force)
+    if args.mitsuba:
+        prepare_output(args.mitsuba, args.force)
+    if args.plots:
+        prepare_output(args.plots, args.force, kind="folder")
     df = read_samples(src)
     if log:
         log(f"{src}: {len(df)} samples")
     mfit = fit_samples(df, channels=channels, weighting=args.weighting, clip=args.clip,
                        clip_model=not args.clip_literal, use_weight_column=not args.ignore_weight_column,
                        source=str(src), n_starts=args.starts, seed=args.seed, log=log)
-    write_fit_json(mfit, out)
+    write_fit_json(mfit, out, provenance=_provenance(args, src, channels, df))
     if log:
         log(f"wrote {out}")
     if args.mitsuba:
         write_mitsuba_material(mfit, args.mitsuba)
     if args.plots:
         from glossrig.core.export import mitsuba_material
-        from glossrig.core.fit_plots import render_preview, write_plots
+        from glossrig.core.fit_plots import write_plots
 
         written = write_plots(df, mfit, args.plots)
         try:
+            from glossrig.twin.material_renders import render_preview   # Mitsuba lives in the twin
+
             written.append(render_preview(mitsuba_material(mfit), Path(args.plots) / "preview_sphere.png"))
-        except InputError as e:
-            print(f"glossrig fit: warning: preview sphere skipped: {e}", file=sys.stderr)
+        except (ImportError, InputError) as e:
+            _log.warning(f"preview sphere skipped: {e}")
         if log:
             log(f"wrote {len(written)} figures to {args.plots}")
     for c, f in mfit.fits.items():
         p = f.params
         print(f"{c:9s} rho_d={p.rho_d:.4g} rho_s={p.rho_s:.4g} alpha_x={p.alpha_x:.4g} alpha_y={p.alpha_y:.4g} "
               f"lobe_rotation={p.lobe_rotation:.4f} rad  rms_rel={f.residuals['rms_relative']:.3g}")
+        print(f"{'':9s} noise-only stderr: " + " ".join(
+            f"{k}={f.stderr[k]:.2g}" for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")))
         if not f.converged:
-            print(f"glossrig fit: warning: {c}: the solver stopped at its evaluation limit before converging "
-                  "(see 'converged' and the standard errors in the fit JSON)", file=sys.stderr)
+            _log.warning(f"{c}: the solver stopped at its evaluation limit before converging "
+                         "(see 'converged' and the standard errors in the fit JSON)")
         if f.at_bound:
-            print(f"glossrig fit: warning: {c}: {', '.join(f.at_bound)} at a bound of Table 4.2; "
-                  "the standard errors assume an interior optimum", file=sys.stderr)
+            _log.warning(f"{c}: {', '.join(f.at_bound)} at a bound of Table 4.2; "
+                         "the standard errors assume an interior optimum")
+    print(f"stderr = {STDERR_KIND}: not the measurement's uncertainty")
     return 0

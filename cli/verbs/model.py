@@ -9,25 +9,32 @@
       nominal coverage to fabricate for a target material, and its gamut distance
 
 WARD.csv holds the samples' fitted Ward parameters (columns name, rho_d, rho_s,
-alpha_x, alpha_y, lobe_rotation); COV.csv their nominal coverages (columns
+alpha_x, alpha_y, lobe_rotation in radians: a column beyond 2 pi is refused as
+degrees); --ward PARAMS of predict takes lobe_rotation in radians or with a unit
+(140deg, 2.44rad); values outside rho_d in [0, 1], rho_s >= 0, rho_d + rho_s <= 1,
+alpha in (0, 0.5] (thesis Table 4.2) are refused. COV.csv their nominal coverages (columns
 sample, nominal_b2). Sample "0/6" matches Ward row "sample_0_6".
 """
 from __future__ import annotations
 
 import json
+import logging
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
 
+from glossrig.cli.outputs import add_force_option, prepare_output
 from glossrig.core.errors import InputError
+
+_log = logging.getLogger(__name__)
 
 HELP = "reproduction model: cross-validate, fit, predict the nominal coverage (thesis ch. 6)"
 
 
 def _add_data_args(p) -> None:
-    p.add_argument("--ward", required=True, metavar="CSV", help="samples' Ward parameters (thesis Table 9.1 layout)")
+    p.add_argument("--ward", required=True, metavar="CSV",
+                   help="samples' Ward parameters (thesis Table 9.1 layout; lobe_rotation column in radians)")
     p.add_argument("--coverages", required=True, metavar="CSV",
                    help="samples' nominal coverages, column nominal_b2 (thesis Table 6.2)")
     p.add_argument("--exclude", default="auto", metavar="auto|none|NAMES",
@@ -41,6 +48,7 @@ def _add_data_args(p) -> None:
     p.add_argument("--starts", type=int, default=3,
                    help="deterministic starting points of the base-2 fit per model (default 3)")
     p.add_argument("--out", required=True, metavar="JSON", help="output file")
+    add_force_option(p, "an existing --out file")
 
 
 def add_arguments(parser) -> None:
@@ -55,7 +63,9 @@ def add_arguments(parser) -> None:
     p = sub.add_parser("predict", help="nominal coverage to fabricate for a target's Ward parameters")
     p.add_argument("--model", required=True, metavar="JSON", help="model written by 'glossrig model fit'")
     p.add_argument("--ward", required=True, metavar="PARAMS",
-                   help="target: rho_d=..,rho_s=..,alpha_x=..,alpha_y=..[,lobe_rotation=..] (radians)")
+                   help="target: rho_d=..,rho_s=..,alpha_x=..,alpha_y=..[,lobe_rotation=..]; lobe_rotation in "
+                        "radians, or with a unit (140deg, 2.44rad); rho_d in [0, 1], rho_s >= 0, "
+                        "rho_d + rho_s <= 1, alpha in (0, 0.5] (thesis Table 4.2)")
     p.add_argument("--json", action="store_true", help="print the prediction as JSON")
     p.set_defaults(func=_predict)
 
@@ -66,7 +76,7 @@ def run(args) -> int:
 
 def _progress(t0: float):
     def say(msg: str) -> None:
-        print(f"[{time.monotonic() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+        _log.info(f"[{time.monotonic() - t0:6.1f} s] {msg}")
     return say
 
 
@@ -90,13 +100,9 @@ def _starts(args) -> int:
     return args.starts
 
 
-def _check_out(path: str) -> Path:
-    p = Path(path)
-    if p.is_dir():
-        raise InputError("output is a directory", path=p)
-    if not p.parent.is_dir():
-        raise InputError("output folder does not exist", path=p)
-    return p
+def _check_out(args) -> Path:
+    """--out may be written (glossrig.cli.outputs): checked before any work."""
+    return prepare_output(args.out, args.force)
 
 
 def _write_json(path: Path, data: dict | str) -> None:
@@ -128,7 +134,7 @@ def _angles(args):
 def _crossval(args) -> int:
     from glossrig.core import reproduction as R
 
-    out = _check_out(args.out)
+    out = _check_out(args)
     samples = R.load_samples(args.ward, args.coverages)
     exclude = _exclude(args.exclude, samples)
     t0 = time.monotonic()
@@ -151,7 +157,7 @@ def _crossval(args) -> int:
 def _fit(args) -> int:
     from glossrig.core import reproduction as R
 
-    out = _check_out(args.out)
+    out = _check_out(args)
     samples = R.load_samples(args.ward, args.coverages)
     exclude = _exclude(args.exclude, samples)
     t0 = time.monotonic()
@@ -191,7 +197,7 @@ def _predict(args) -> int:
               f" = {pr.gamut_ratio:.2f} x the training samples' largest ({pr.gamut_threshold:.3f})")
         print(f"gamut: {pr.gamut}")
     if pr.gamut != "in":
-        print(f"glossrig model predict: warning: target is {'near' if pr.gamut == 'near' else 'out of'} the gamut: "
-              f"the best achievable mix is {pr.gamut_ratio:.2f} x further from it than any fabricated sample is from "
-              "the model", file=sys.stderr)
+        _log.warning(f"target is {'near' if pr.gamut == 'near' else 'out of'} the gamut: "
+                     f"the best achievable mix is {pr.gamut_ratio:.2f} x further from it than any fabricated sample "
+                     "is from the model")
     return 0

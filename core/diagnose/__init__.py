@@ -45,21 +45,28 @@ def load_fit(path):
 
 def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: float = 0.8,
              progress: bool = False, log=print, reference_brdf=None, reference_measured=None,
-             plots: bool = True) -> dict:
+             plots: bool = True, store=None) -> dict:
     """``reference_brdf``: callable(samples table) -> (n, 3) RGB BRDF of the reference at the
     rows' angles (e.g. :meth:`glossrig.twin.measured_brdf.MeasuredBRDF.table`), enabling the
     reference_brdf cause. ``reference_measured``: the reference capture already measured
-    (:func:`glossrig.core.extract.measure_capture`) with the same camera and lamps."""
+    (:func:`glossrig.core.extract.measure_capture`) with the same camera and lamps.
+
+    ``store``: a :class:`glossrig.core.checkpoint.WorkStore` fingerprinted with every input
+    of this diagnosis; each finished stage is kept there and reused (every LED of the
+    sample and reference measurements, the material fit, the BRDF-space causes, the
+    frame-space causes with their residual structure), so an interrupted diagnosis
+    resumes and writes the same report (its ``meta.time_s`` apart)."""
     from glossrig.core.fit import fit_samples
     from glossrig.core.intrinsics import load_camera
     from glossrig.core.lamps import load_lamps
     from glossrig.core.ward import ward_from_angles
 
     t0 = time.time()
+    stage = store.get_or_compute if store is not None else (lambda name, compute: compute())
     cam = load_camera(camera)
     lp = load_lamps(lamps)
     data = load_brdf(sample_dir, reference_dir, cam, lp, albedo=albedo, progress=progress,
-                     reference=reference_measured)
+                     reference=reference_measured, store=store)
     data.reference_brdf = reference_brdf
     log(f"measured {len(data.table)} BRDF samples ({time.time() - t0:.0f} s)")
     t = data.table
@@ -72,15 +79,20 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
                              f"median {rel:.0%} (> {FIT_MISMATCH:.0%})", path=Path(fit))
         data.material_fixed = True
     else:
-        w = fit_samples(t, channels=["luminance"]).fits["luminance"].params
+        w = stage("material_fit", lambda: fit_samples(t, channels=["luminance"]).fits["luminance"].params)
     log(f"material: {w}")
     m = BrdfModel.build(data, w)
-    causes = brdf_causes(m)
+    causes = stage("brdf_causes", lambda: brdf_causes(m))
     log(f"BRDF-space causes done ({time.time() - t0:.0f} s)")
-    fd = load_frames(sample_dir, data.measured)
-    causes += frame_causes(fd)
+
+    def frame_stage():
+        fd = load_frames(sample_dir, data.measured)
+        return frame_causes(fd), frame_structure(FrameSet(fd))
+
+    fcauses, fstructure = stage("frame_causes", frame_stage)
+    causes = causes + fcauses
     log(f"frame-space causes done ({time.time() - t0:.0f} s)")
-    structure = {"brdf": brdf_structure(m), "frames": frame_structure(FrameSet(fd))}
+    structure = {"brdf": brdf_structure(m), "frames": fstructure}
     base = {}
     for c in causes:
         base.setdefault(c.space, c.base_error)

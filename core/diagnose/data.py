@@ -23,7 +23,6 @@ import pandas as pd
 from glossrig.core.capture import load_manifest
 from glossrig.core.errors import InputError
 from glossrig.core.extract import Measured, check_compatible, diffuse_normalize, measure_capture
-from glossrig.core.raw import read_raw
 from glossrig.core.rig import load_rig
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -72,15 +71,20 @@ def _lum(df, prefix=""):
 
 
 def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progress: bool = False,
-              reference: Measured | None = None) -> BrdfData:
+              reference: Measured | None = None, store=None) -> BrdfData:
     """Measure sample and reference alike and divide them (the pipeline's extraction),
     keeping the geometry columns the causes need. ``reference`` is the reference capture
-    already measured with the same camera and lamps (a study reuses it across captures)."""
+    already measured with the same camera and lamps (a study reuses it across captures).
+    ``store``: a :class:`glossrig.core.checkpoint.WorkStore` keeping each measured LED
+    (see :func:`glossrig.core.extract.measure_capture`)."""
     from glossrig.core.extract import camera_arrays
 
-    check_compatible(sample_dir, reference_dir)
-    ms = measure_capture(sample_dir, cam, lamps, progress=progress)
-    mr = reference if reference is not None else measure_capture(reference_dir, cam, lamps, progress=progress)
+    check_compatible(sample_dir, reference_dir, what="diagnose")
+    ms = measure_capture(sample_dir, cam, lamps, progress=progress, what="diagnose", store=store,
+                         unit_prefix="sample-")
+    mr = reference if reference is not None else measure_capture(reference_dir, cam, lamps, progress=progress,
+                                                                 name="REF_DIR", what="diagnose", store=store,
+                                                                 unit_prefix="reference-")
     s = ms.table.copy()
     for c in "rgb":
         s[f"S_{c}"] = s[c]
@@ -98,8 +102,7 @@ def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progre
         raise InputError(f"only {len(t)} usable BRDF samples: too few to diagnose", path=Path(sample_dir))
     man = load_manifest(sample_dir)
     first = next(im for im in man.images if im.role == "calibration")
-    fr = read_raw(man.folder / first.file, crop=(0, 0, 2, 2), exposure_s=first.exposure_s, iso=first.iso,
-                  aperture=first.aperture)
+    fr = man.read_raw(first, crop=(0, 0, 2, 2))
     patch_uv = {}
     for rot, g in ms.geometry.items():
         ii, jj = np.nonzero(g.patch_mask)
@@ -129,8 +132,7 @@ def load_frames(sample_dir, measured: Measured) -> FrameData:
         for led in sorted({im.leds[0] for im in man.select("sequence", rotation=rot)}):
             seq = [im for im in man.select("sequence", rotation=rot) if im.leds == [led] and im.repeat == 0]
             seq.sort(key=lambda im: im.exposure_s)
-            frames = [read_raw(man.folder / im.file, crop=g.crop, exposure_s=im.exposure_s, iso=im.iso,
-                               aperture=im.aperture) for im in seq]
+            frames = [man.read_raw(im, crop=g.crop) for im in seq]
             f0 = frames[0]
             h, w = f0.mosaic.shape
             black = np.tile(np.asarray(f0.black, float).reshape(2, 2), (h // 2 + 1, w // 2 + 1))[:h, :w]

@@ -105,7 +105,8 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
         w = next(c for c in causes if c.name == v)
         L.append(f"`{v}` lowers the held-out error of the {w.space}-space model from {w.base_error:.4g} to "
                  f"{w.error:.4g} (gain {w.gain:.1%}); parameters {json.dumps(_num(w.params))} "
-                 f"+- {json.dumps(_num(w.stderr))}.")
+                 f"+- {json.dumps(_num(w.stderr))} (statistical only - noise or fold spread; excludes calibration "
+                 "and model error, so not the parameters' full uncertainty).")
     L += ["", "Base held-out errors (mean squared normalised residual): "
           + ", ".join(f"{k} {val:.4g}" for k, val in base_errors.items()), "",
           "Penalty: a cause is significant when its held-out error is lower in every fold and the pooled gain "

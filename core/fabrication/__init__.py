@@ -6,7 +6,8 @@ halftone (:mod:`.halftone`, Babaei & Hersch 2013) -> scratch segments along the
 discrete lines (:mod:`.vectorize`) -> rotation onto the machine's y axis, shift and
 scale (:mod:`.layout`, eq. 5.2-5.3) -> ordered cuts with bed and depth checks
 (:mod:`.toolpath`) -> G-code or Roland RML-1 (:mod:`.gcode`, :mod:`.rml`) and
-previews (:mod:`.preview`). :mod:`.pipeline` runs it end to end; :mod:`.rasterize`
+previews (:mod:`.preview`; the predicted print lit and rendered beside the target,
+:mod:`.appearance`, thesis fig. 7.7). :mod:`.pipeline` runs it end to end; :mod:`.rasterize`
 maps a machine file back onto the halftone grid to check it.
 """
 from .machine import Machine, ScreenParams, load_machine

@@ -30,7 +30,6 @@ reads only what fabrication needs, without importing that code::
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..toml_input import read_json
 
 MODEL_KIND = "glossrig.reproduction_model"
 FORMS = ("eq6.7-offset", "eq6.7")
@@ -98,12 +98,7 @@ def load_etn(path: str | Path) -> Etn:
     form, an ETN with a pole on [0, 1].
     """
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError("model file not found", path=path) from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise InputError(f"not a JSON reproduction model: {e}", path=path) from None
+    doc = read_json(path, "model file")
     if not isinstance(doc, dict) or doc.get("kind") != MODEL_KIND:
         kind = doc.get("kind") if isinstance(doc, dict) else type(doc).__name__
         raise InputError(f"expected a reproduction model (\"kind\": \"{MODEL_KIND}\"), got kind {kind!r}", path=path)

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..resources import resolve_input
 from ..rig import SCENES_DIR
 from ..toml_input import read_toml
 
@@ -111,7 +112,7 @@ def load_machine(path: str | Path | None = None) -> Machine:
     "we cannot use other values in between"), feeds above the axis limits of thesis
     5.1.1, a screen with slope a/b outside [0, 1] (one pixel per column, thesis 5.2).
     """
-    path = Path(path) if path is not None else DEFAULT_MACHINE_FILE
+    path = resolve_input(path, "machine description") if path is not None else DEFAULT_MACHINE_FILE
     raw = read_toml(path, "machine description")
     for section in ("machine", "tool", "motion", "halftone"):
         if not isinstance(raw.get(section), dict):

@@ -5,14 +5,19 @@ effective coverage when a reproduction model is given, whose ETN is applied afte
 resampling, thesis 7.2.2/7.2.5), size the halftone grid from the print width, halftone
 (juxtaposed, :mod:`.halftone`), vectorise along the discrete lines (:mod:`.vectorize`),
 lay out on the machine (:mod:`.layout`, eq. 5.2-5.3), order the cuts
-(:mod:`.toolpath`), check bed and depth, and render the machine file and previews.
-:func:`write` then writes them. Nothing is written when any step refuses, and existing
+(:mod:`.toolpath`), check bed and depth, and render the machine file and previews,
+among them ``preview_render.png``, the predicted print lit and rendered beside the
+target (:mod:`.appearance`, thesis fig. 7.7). It warns (logging) when a colour image is
+turned grey (:mod:`.inputs`) and when the width leaves the halftone too few screen
+elements for the image's detail (:func:`.appearance.detail_loss`; the numbers are in
+``summary.json`` under ``"detail"``). :func:`write` then writes them. Nothing is written when any step refuses, and existing
 files are not overwritten unless asked.
 """
 from __future__ import annotations
 
 import io
 import json
+import logging
 import math
 import os
 import tempfile
@@ -23,6 +28,7 @@ import numpy as np
 from PIL import Image
 
 from ..errors import InputError
+from .appearance import detail_loss, detail_warning, load_gloss_model, preview_render
 from .etn import load_etn
 from .gcode import write_gcode
 from .halftone import coverage_levels, grid_shape, halftone
@@ -36,6 +42,8 @@ from .vectorize import Segments, extract_segments
 
 LANGUAGES = {"gcode": "toolpath.gcode", "rml": "toolpath.rml"}
 MAX_CELLS = 60_000_000
+
+_log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -73,6 +81,7 @@ def plan(image: str | Path, width_mm: float, *, model: str | Path | None = None,
         raise InputError(f"--width-mm must be a positive number of millimetres, got {width_mm:g}")
     m = machine if isinstance(machine, Machine) else load_machine(machine)
     etn = load_etn(model) if model is not None else None
+    gloss = load_gloss_model(model, etn) if previews else None      # preview_render.png (appearance.py)
     grey = load_coverage_image(image)
 
     cell = cell_size_mm(m.scratch_thickness_mm, m.screen)
@@ -82,6 +91,9 @@ def plan(image: str | Path, width_mm: float, *, model: str | Path | None = None,
                          f"{rows} x {cols} halftone cells of {cell * 1000:.1f} um (limit {MAX_CELLS})")
     layout = make_layout(rows, cols, m)
     check_print_fits(layout, m)
+    detail = detail_loss(grey, (rows, cols), m.screen, cell)
+    if (msg := detail_warning(detail, width_mm)) is not None:
+        _log.warning(msg)
     grid = resample(grey, (rows, cols))
     clipped = 0
     if etn is not None:
@@ -155,6 +167,12 @@ def plan(image: str | Path, width_mm: float, *, model: str | Path | None = None,
         title = f"glossrig fabricate {Path(image).name}"
         p.files["preview.svg"] = svg_preview(coverage, layout, path, m, title).encode("utf-8")
         p.files["preview.png"] = _png(png_preview(coverage, layout, path, m))
+        label = ("target (grey = effective coverage)" if etn is not None
+                 else "target (grey = coverage, white = scratched)")
+        render, summary["preview_render"] = preview_render(grey, bitmap, m.screen, layout.size_mm, gloss,
+                                                           target_label=label)
+        p.files["preview_render.png"] = _png(render)
+    summary["detail"] = detail
     summary["files"] = sorted([*p.files, "summary.json"])
     p.files["summary.json"] = (json.dumps(summary, indent=2) + "\n").encode("utf-8")
     return p
@@ -172,7 +190,7 @@ def write(p: Plan, out_dir: str | Path, *, overwrite: bool = False) -> list[Path
         raise InputError("--out exists and is not a directory", path=out)
     existing = [name for name in p.files if (out / name).exists()]
     if existing and not overwrite:
-        raise InputError(f"would overwrite {', '.join(sorted(existing))} (use --overwrite); nothing written", path=out)
+        raise InputError(f"would overwrite {', '.join(sorted(existing))} (use --force to overwrite); nothing written", path=out)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for name, data in p.files.items():

@@ -81,12 +81,12 @@ def planned_capture(out: Path, rig: Path, material: str, leds: str, rotations: s
     plan, report = out.with_suffix(".plan.toml"), out.with_suffix(".plan.json")
     if not report.exists():
         glossrig("design", "exposures", "--rig", rig, "--material", material, "--leds", leds,
-                 f"--rotations={rotations}", "--capture-scale", scale, "--out", plan, "--report", report)
+                 f"--rotations={rotations}", "--capture-scale", scale, "--seed", seed, "--out", plan,
+                 "--report", report)
     if not capture_complete(out):
         fresh(out)
-        twin = plan.with_name(plan.stem + ".twin.toml")
-        twin.write_text(plan.read_text() + f'\n[twin]\nmaterial = "{material}"\nscale = {scale}\nseed = {seed}\n')
-        glossrig("capture", "--plan", twin, "--lights", "twin", "--camera", "twin", "--out", out, "--no-progress")
+        # the plan's own [twin] table (material, --capture-scale, --seed) drives the twin
+        glossrig("capture", "--plan", plan, "--lights", "twin", "--camera", "twin", "--out", out, "--no-progress")
     return out, json.loads(report.read_text())
 
 

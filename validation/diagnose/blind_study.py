@@ -11,7 +11,7 @@ trial, the reference measured once. Set-up (first run): one null sample_2_6
 capture (seed 999) whose Ward fit becomes the material fit passed as --fit to every
 trial (a fit from another capture of the material, so a rotation offset is testable),
 and whose DNGs are rewritten outside the twin for black_level_offset and
-sensor_nonlinearity (glossrig.core.diagnose.hide), and whose geometric calibration
+sensor_nonlinearity (glossrig.twin.rewrite_raw), and whose geometric calibration
 (holder and cylinder poses) is reused by every trial. Trial k: cause ``CAUSES[k mod 11]``
 (or none) at a magnitude drawn from its seed, hidden in a sample_2_6 capture (LEDs 6,
 9, rotation 0, scale 0.25, --ideal, seed 1000 + k) by the twin's ``--effects`` or by
@@ -188,7 +188,7 @@ def trial(k: int, work: Path, a, null: Path, fit: Path, ref) -> dict:
     t0 = time.time()
     code = {"capture": code_version(), "diagnose": a.diagnose_code}
     if how == "rewrite":
-        from glossrig.core.diagnose.hide import rewrite_capture
+        from glossrig.twin.rewrite_raw import rewrite_capture
 
         if cap.exists():
             shutil.rmtree(cap)

@@ -1,4 +1,7 @@
-"""Hide sensor effects in an existing capture by rewriting its raw values, outside the twin.
+"""Hide sensor effects in an existing capture by rewriting its raw values, outside the renderer.
+
+It lives in the twin because it writes DNGs (:mod:`glossrig.twin.dng`); ``core``
+imports neither the twin nor the hardware layer (tests/test_layering.py).
 
 Used by the tests and the blind study so that finding these effects does not
 lean on the twin's own implementation: each DNG of the capture is decoded with
@@ -27,7 +30,7 @@ CFA_NAMES = {0: "R", 1: "G", 2: "B"}
 
 def rewrite_capture(src, dst, effect: str, value: float) -> Path:
     from glossrig.core.raw import read_raw
-    from glossrig.twin.dng import write_dng
+    from .dng import write_dng
 
     if effect not in REWRITABLE:
         raise InputError(f"can only rewrite {', '.join(REWRITABLE)}, not {effect!r}")
@@ -40,7 +43,7 @@ def rewrite_capture(src, dst, effect: str, value: float) -> Path:
         if im["role"] != "sequence":
             continue
         p = dst / im["file"]
-        fr = read_raw(p, exposure_s=im["exposure_s"], iso=im["iso"], aperture=im["aperture"])
+        fr = read_raw(p, exposure_s=im["exposure_s"], iso=im["iso"], aperture=im["aperture"], sha256=im["sha256"])
         dn = fr.mosaic.astype(np.float64)
         black = np.tile(np.asarray(fr.black, float).reshape(2, 2), (dn.shape[0] // 2 + 1, dn.shape[1] // 2 + 1))
         black = black[:dn.shape[0], :dn.shape[1]]
