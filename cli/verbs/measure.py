@@ -83,7 +83,6 @@ def _rig_of(folder):
 
 def run(args) -> int:
     import json
-    from pathlib import Path
 
     from glossrig.cli.steps import StepRunner, output_digest
     from glossrig.core.capture import TRUTH
@@ -234,28 +233,6 @@ def _fit(samples_path, fit_path, log) -> None:
     prov = provenance({"samples": samples_path}, {"channels": list(CHANNELS), **o}, tool="glossrig measure (fit)")
     prov["inputs"]["samples"]["provenance"] = df.attrs.get("provenance")
     write_fit_json(mfit, fit_path, provenance=prov)
-    _ensure_gloss(fit_path)
-
-
-def _ensure_gloss(fit_path) -> None:
-    """Gloss units under fit.json's "luminance" (issue 17): added here with
-    :func:`glossrig.core.gloss.gloss_from_ward` of the luminance fit when the fit's writer
-    did not already put them there."""
-    import json
-
-    from glossrig.core.capture import atomic_write_bytes
-
-    doc = json.loads(Path(fit_path).read_text())
-    lum = doc.get("luminance")
-    if not isinstance(lum, dict) or "gloss" in lum:
-        return
-    try:
-        from glossrig.core.gloss import gloss_from_ward
-    except ImportError:
-        _log.warning("gloss units not computed: glossrig.core.gloss is not available")
-        return
-    lum["gloss"] = gloss_from_ward({k: lum[k] for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")})
-    atomic_write_bytes(fit_path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
 
 
 def _exports(fit_path, samples_path, exports_dir) -> None:
