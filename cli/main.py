@@ -50,6 +50,9 @@ def _set_formatter(p: argparse.ArgumentParser) -> None:
     inherit its parent's formatter."""
     p.formatter_class = HelpFormatter
     for action in p._actions:
+        if (action.help is None and action.option_strings and action.default is not None
+                and action.default is not False and action.default is not argparse.SUPPRESS):
+            action.help = "default: %(default)s"     # argparse shows nothing for an option without help
         if isinstance(action, argparse._SubParsersAction):
             for child in dict.fromkeys(action.choices.values()):
                 _set_formatter(child)

@@ -22,7 +22,7 @@ import argparse
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterable
+from collections.abc import Iterable
 
 from glossrig.core.errors import InputError
 

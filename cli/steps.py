@@ -22,7 +22,7 @@ import logging
 import shutil
 import time
 from pathlib import Path
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
 from glossrig.core.checkpoint import capture_sha256, fingerprint, read_record, work_folder_for, write_record
 from glossrig.core.errors import GlossrigError

@@ -152,7 +152,7 @@ class ImageEntry:
         return d
 
     @classmethod
-    def from_json(cls, d: dict, where: str) -> "ImageEntry":
+    def from_json(cls, d: dict, where: str) -> ImageEntry:
         missing = [k for k in REQUIRED if k not in d]
         if missing:
             raise InputError(f"image entry {d.get('file', '?')!r} lacks {', '.join(missing)}", path=where)
@@ -258,7 +258,7 @@ class Manifest:
         for im in self.images:
             f = self.folder / im.file
             if not f.exists():
-                raise InputError(f"raw file listed in the manifest is missing", path=f)
+                raise InputError("raw file listed in the manifest is missing", path=f)
             if check_hashes and sha256_file(f) != im.sha256:
                 raise InputError("checksum does not match capture.json (file changed since capture)", path=f)
 

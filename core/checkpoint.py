@@ -27,7 +27,8 @@ import pickle
 import re
 import shutil
 from pathlib import Path
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from .capture import MANIFEST, sha256_file
 from .errors import InputError

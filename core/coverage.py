@@ -55,7 +55,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -94,7 +94,7 @@ class PixelGeometry:
     def __len__(self) -> int:
         return int(self.points.shape[0])
 
-    def subset(self, idx) -> "PixelGeometry":
+    def subset(self, idx) -> PixelGeometry:
         return replace(self, points=self.points[idx], normals=self.normals[idx], u=self.u[idx], v=self.v[idx])
 
 

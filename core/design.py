@@ -56,7 +56,7 @@ import re
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -653,7 +653,7 @@ def select_leds(pool: Pool, n: int, rotations, start: list[int] | None = None, f
         trajectory.append(s)
         say(f"greedy: LED {len(sel)}/{n} at {_fmt_mount(pool.evals[i].position)}, score {s:+.4f}")
     current = pool.score(sel, rotations)
-    for npass in range(max_passes):
+    for _npass in range(max_passes):
         improved = False
         for k in range(len(sel)):
             rest = sel[:k] + sel[k + 1:]
@@ -868,7 +868,7 @@ def optimise(rig, n_leds: int, materials, runner, space: SearchSpace = SearchSpa
     if len(rots) < n_rotations:
         rots += [r for r in rotations if r not in rots][: n_rotations - len(rots)]
     leds, traj = select_leds(pool, n_leds, rots, feasible=cand_ok, log=say)
-    for rnd in range(rounds):
+    for _rnd in range(rounds):
         new_rots = select_rotations(pool, leds, n_rotations, start=rots, log=say)
         if new_rots == sorted(rots):
             break

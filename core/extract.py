@@ -37,7 +37,7 @@ from .intrinsics import CameraCalibration
 from .patch import normalise_by_patch
 from .progress import progress_enabled
 from .markers import holder_marker_corners
-from .raw import even_crop, linearize
+from .raw import even_crop
 from .rig import Rig, load_rig
 
 PATCH_SHRINK = 0.2        # keep the inner 60 % of the white patch (away from the red frame)

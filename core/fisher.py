@@ -97,7 +97,7 @@ class HdrNoise:
     usable_fraction: float = 0.9
 
     @classmethod
-    def from_rig(cls, rig, led_rel: float = 0.01) -> "HdrNoise":
+    def from_rig(cls, rig, led_rel: float = 0.01) -> HdrNoise:
         """From the rig file's ``[sensor]``, ``[camera]``, ``[leds]`` and ``[exposures]`` sections."""
         try:
             sen = rig.section("sensor")

@@ -70,7 +70,7 @@ import math
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
@@ -215,7 +215,7 @@ class _Data:
     W: np.ndarray       # residual multiplier sqrt(v) * w (eq. 4.81-4.82)
     y: np.ndarray       # measured values (clipped if clipping)
 
-    def take(self, idx) -> "_Data":
+    def take(self, idx) -> _Data:
         return _Data(self.geo.take(idx), self.W[idx], self.y[idx])
 
     def __len__(self):

@@ -97,7 +97,7 @@ def slope_jacobian(df) -> np.ndarray:
         grid = np.full((vv.max() + 1, uu.max() + 1), -1, np.int64)
         grid[vv, uu] = idx
         for axis, (du, dv) in enumerate(((1, 0), (0, 1))):
-            def at(a, b):
+            def at(a, b, grid=grid, idx=idx):
                 ok = (a >= 0) & (b >= 0) & (a < grid.shape[1]) & (b < grid.shape[0])
                 out = np.full(idx.size, -1, np.int64)
                 out[ok] = grid[b[ok], a[ok]]

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -90,7 +90,7 @@ class NoiseModel:
 
     @classmethod
     def from_sensor(cls, *, white: float, black, iso: float, electrons_per_dn_iso100: float,
-                    read_noise_e: float) -> "NoiseModel":
+                    read_noise_e: float) -> NoiseModel:
         """From sensor figures: conversion gain K = electrons_per_dn_iso100 *
         100 / ISO (e-/DN), range R = white - mean(black) DN; then
         electrons_full_scale = R K and read_sigma = sqrt((read_noise_e/K)^2 +
@@ -106,7 +106,7 @@ class NoiseModel:
         return cls(electrons_full_scale=rng * k, read_sigma=math.sqrt((read_noise_e / k) ** 2 + 1.0 / 12.0) / rng)
 
     @classmethod
-    def from_rig(cls, rig, iso: float | None = None) -> "NoiseModel":
+    def from_rig(cls, rig, iso: float | None = None) -> NoiseModel:
         """From a :class:`glossrig.core.rig.Rig`: its ``[camera]`` levels and
         ``[sensor]`` figures, at ``iso`` (default: the rig's sequence ISO)."""
         sec = rig.raw.get("sensor")
@@ -253,8 +253,8 @@ def stack_frames(frames: Sequence, repeats: Sequence[int], *, exposures_s: Seque
             k = missing[0]
             other = next((slots[q][k] for q in reps if slots[q][k] is not None), None)
             where = other.path if other is not None else by_rep[r][0].path
-            note = (f" (this file is that exposure in another repeat)" if other is not None else
-                    f" (no repeat has it; this is the repeat's first file)")
+            note = (" (this file is that exposure in another repeat)" if other is not None else
+                    " (no repeat has it; this is the repeat's first file)")
             raise InputError(f"repeat {r} lacks exposure(s) {', '.join(f'{table[j]:g} s' for j in missing)} of "
                              f"{table_src}{note}; the sequence is incomplete", path=where)
     h, w = f0.mosaic.shape

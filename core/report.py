@@ -36,7 +36,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -510,10 +510,27 @@ def _gloss_section(doc: _Doc, gloss: dict | None):
     if not gloss:
         doc.note("Gloss units: not computed.")
         return
-    rows = [[k, v] for k, v in _flatten(gloss)]
-    doc.table(["quantity", "value"], rows, "Gloss as the coatings and print industry measures it (ISO 2813 / "
-              "ASTM D523 specular gloss in GU; haze and distinctness of image, ASTM E430 / ISO 13803), computed "
-              "from the fitted BRDF; see the notes in the table for what is extrapolated")
+    caption = ("Gloss as the coatings and print industry measures it (ISO 2813 / ASTM D523 specular gloss in GU; "
+               "haze and distinctness of image, ASTM E430 / ISO 13803), computed from the fitted BRDF")
+    spread = gloss.get("spread") if isinstance(gloss.get("spread"), dict) else None
+    if spread:
+        # one row per quantity: the central value, its spread over the candidate models, and
+        # whether it lies outside the angles the rig measures (core.gloss)
+        models = sorted({m for v in spread.values() if isinstance(v, dict) for m in (v.get("models") or {})})
+        rows = []
+        for q, v in spread.items():
+            if not isinstance(v, dict):
+                continue
+            ms = v.get("models") or {}
+            rows.append([q, v.get("value"), v.get("min"), v.get("max"), "yes" if v.get("extrapolated") else "no",
+                         *[ms.get(m) for m in models]])
+        doc.table(["quantity", "value", "min", "max", "extrapolated", *models], rows,
+                  caption + "; min and max span the candidate models, whose own values follow")
+    else:
+        rows = [[k, v] for k, v in _flatten({k: v for k, v in gloss.items() if k not in ("assumptions", "detail")})]
+        doc.table(["quantity", "value"], rows, caption)
+    if isinstance(gloss.get("assumptions"), str):
+        doc.p("Assumptions: " + gloss["assumptions"])
 
 
 def _renders_section(doc: _Doc, renders: dict):

@@ -63,7 +63,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares, minimize, minimize_scalar
@@ -114,12 +114,12 @@ class SampleSet:
                 return i
         raise InputError(f"unknown sample {name!r} (samples: {', '.join(self.names)})")
 
-    def subset(self, names: Sequence[str]) -> "SampleSet":
+    def subset(self, names: Sequence[str]) -> SampleSet:
         idx = [self.index(n) for n in names]
         return SampleSet(tuple(self.names[i] for i in idx), tuple(self.nominal_b2[i] for i in idx),
                          tuple(self.ward[i] for i in idx))
 
-    def without(self, names: Sequence[str]) -> "SampleSet":
+    def without(self, names: Sequence[str]) -> SampleSet:
         drop = {self.names[self.index(n)] for n in names}
         return self.subset([n for n in self.names if n not in drop])
 
@@ -240,7 +240,7 @@ def load_samples(ward_path, coverages_path) -> SampleSet:
         params.append(ward[k])
     s = SampleSet(tuple(names), tuple(float(c) for c in nom), tuple(params))
     try:
-        s.base1_name   # validates: one unscratched sample
+        _ = s.base1_name   # validates: one unscratched sample
     except InputError as e:
         raise InputError(str(e), path=coverages_path) from None
     return s
@@ -365,7 +365,7 @@ def best_mix(targets: np.ndarray, f_b1: np.ndarray, f_b2: np.ndarray, clip: floa
         costs = [float(np.sum((np.minimum(f_b1 + c * d, clip) - ti) ** 2)) for c in grid]
         c0 = grid[int(np.argmin(costs))]
         lo, hi = max(0.0, c0 - 0.005), min(1.0, c0 + 0.005)
-        r = minimize_scalar(lambda c: float(np.sum((np.minimum(f_b1 + c * d, clip) - ti) ** 2)),
+        r = minimize_scalar(lambda c, ti=ti: float(np.sum((np.minimum(f_b1 + c * d, clip) - ti) ** 2)),
                             bounds=(lo, hi), method="bounded", options={"xatol": 1e-7})
         out[i] = r.x if r.fun <= min(costs) else c0
     return out
@@ -406,7 +406,7 @@ class ETN:
                 "nominal_b1": "1 - nominal_b2 (thesis 6.1)"}
 
     @classmethod
-    def from_json(cls, d: dict, path=None) -> "ETN":
+    def from_json(cls, d: dict, path=None) -> ETN:
         g = d.get("gamma") if isinstance(d, dict) else None
         if not isinstance(g, list) or len(g) != 4 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in g):
             raise InputError("etn.gamma must be a list of 4 finite numbers", path=path)
@@ -525,7 +525,7 @@ def fit_bases(targets: np.ndarray, f_b1: np.ndarray, a: AngleSet, starts: Sequen
     return BaseFit(_ward_from_vec(x), np.clip(x[5:], 0.0, 1.0), c, len(starts), tuple(costs))
 
 
-def base2_starts(samples: "SampleSet", count: int = 3) -> list[WardParams]:
+def base2_starts(samples: SampleSet, count: int = 3) -> list[WardParams]:
     """Deterministic base-2 starts replacing Table 6.3's random ones: the Ward
     parameters of ``count`` non-base-1 samples spread evenly over the nominal
     coverages, highest first (on the thesis samples every start reaches the
@@ -655,7 +655,7 @@ class ReproductionModel:
             raise InputError(f"cannot write model: {e.strerror}", path=p) from None
 
     @classmethod
-    def from_json(cls, d: dict, path=None) -> "ReproductionModel":
+    def from_json(cls, d: dict, path=None) -> ReproductionModel:
         if not isinstance(d, dict) or d.get("kind") != KIND:
             raise InputError(f"not a reproduction model (expected \"kind\": \"{KIND}\")", path=path)
         try:
@@ -677,7 +677,7 @@ class ReproductionModel:
             raise InputError(f"malformed reproduction model: {type(e).__name__} {e}", path=path) from None
 
     @classmethod
-    def load(cls, path) -> "ReproductionModel":
+    def load(cls, path) -> ReproductionModel:
         p = Path(path)
         try:
             d = json.loads(p.read_text())

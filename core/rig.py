@@ -131,7 +131,7 @@ class Rig:
     def section(self, name: str) -> dict:
         return _get(self.raw, name, self.path)
 
-    def with_leds(self, leds: list[Led]) -> "Rig":
+    def with_leds(self, leds: list[Led]) -> Rig:
         return replace(self, leds=tuple(leds))
 
 

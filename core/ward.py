@@ -52,7 +52,7 @@ def parse_angle(text, name: str = "lobe_rotation") -> float:
                          f"NUMBERdeg / NUMBERrad)") from None
 
 
-def check_physical(p: "WardParams", where=None, what: str = "Ward parameters") -> "WardParams":
+def check_physical(p: WardParams, where=None, what: str = "Ward parameters") -> WardParams:
     """Reject Ward parameters outside their physical ranges, the one validator every user
     input of Ward parameters goes through (material specs and files, ``model predict
     --ward``, the reproduction model's CSV): rho_d in [0, 1], rho_s >= 0, energy
@@ -105,7 +105,7 @@ class WardParams:
         return asdict(self)
 
     @classmethod
-    def parse(cls, text: str) -> "WardParams":
+    def parse(cls, text: str) -> WardParams:
         """Parse ``rho_d=..,rho_s=..,alpha_x=..,alpha_y=..[,lobe_rotation=..]`` given by a
         user: lobe_rotation in radians unless written with a unit (``140deg``, ``2.44rad``);
         every value is checked against its physical range (:func:`check_physical`)."""
@@ -181,10 +181,10 @@ class WardGeometry:
     sx: np.ndarray
     sy: np.ndarray
     g: np.ndarray
-    kd: "float | np.ndarray"
+    kd: float | np.ndarray
     shape: tuple = ()
 
-    def take(self, idx) -> "WardGeometry":
+    def take(self, idx) -> WardGeometry:
         kd = self.kd if np.isscalar(self.kd) else self.kd[idx]
         sx = self.sx[idx]
         return WardGeometry(sx, self.sy[idx], self.g[idx], kd, sx.shape)

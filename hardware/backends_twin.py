@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Iterable
+from collections.abc import Iterable
 
 from glossrig.core.capture import TRUTH, atomic_write_json
 from glossrig.core.errors import InputError

@@ -263,7 +263,7 @@ class Gphoto2Camera:
         except Exception:   # noqa: BLE001 - the camera is already gone
             pass
         self._cam = None
-        for attempt in range(1, self.reconnect_attempts + 1):
+        for _attempt in range(1, self.reconnect_attempts + 1):
             self._sleep(self.reconnect_wait_s)
             try:
                 self._connect()

@@ -97,7 +97,7 @@ class FakeCameraBody:
                "imagequality": QUALITY, "capturetarget": TARGET}
 
     @classmethod
-    def from_spec(cls, spec: str | None, where: str = "GLOSSRIG_FAKE_CAMERA") -> "FakeCameraBody":
+    def from_spec(cls, spec: str | None, where: str = "GLOSSRIG_FAKE_CAMERA") -> FakeCameraBody:
         """``key=value,key=value`` (keys: delay_s, disconnect_after, reconnect_after
         (``none`` = never), ignore_settings)."""
         body = cls()

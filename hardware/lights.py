@@ -38,7 +38,8 @@ The virtual lights of the twin live in :mod:`glossrig.hardware.backends_twin`.
 from __future__ import annotations
 
 import time
-from typing import Iterable, Protocol, runtime_checkable
+from collections.abc import Iterable
+from typing import Protocol, runtime_checkable
 
 from glossrig.core.errors import InputError
 from glossrig.core.rig import Rig

@@ -8,7 +8,8 @@ them off before asking). With the twin the "operator" is the virtual rig itself
 from __future__ import annotations
 
 import sys
-from typing import Callable, Protocol, runtime_checkable
+from collections.abc import Callable
+from typing import Protocol, runtime_checkable
 
 from .errors import CaptureError
 

@@ -178,7 +178,7 @@ class CapturePlan:
                             aperture=self.aperture, exposure_index=k)
         return out
 
-    def estimate(self, shots: list[Shot] | None = None) -> "TimeEstimate":
+    def estimate(self, shots: list[Shot] | None = None) -> TimeEstimate:
         shots = self.shots() if shots is None else shots
         floor = sum(s.exposure_s for s in shots)
         return TimeEstimate(shots=len(shots), exposure_s=floor,

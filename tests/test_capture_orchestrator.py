@@ -99,7 +99,7 @@ def test_complete_capture_writes_the_folder_contract(tmp_path):
     assert roles == ["calibration"] + ["sequence"] * 8
     assert m.images[0].leds == list(range(1, 17))
     # what the camera saw: the LEDs that were on and the settings it used, shot by shot
-    for im, (_, settings, lit) in zip(m.images, r.body.log):
+    for im, (_, _settings, lit) in zip(m.images, r.body.log):
         assert sorted(lit) == im.leds
         assert abs(im.extra["exposure_s_file"] - im.exposure_s) / im.exposure_s < 0.1
     assert [im.exposure_s for im in m.images[1:5]] == [0.01, 0.02, 0.01, 0.02]

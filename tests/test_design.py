@@ -64,7 +64,7 @@ def test_fisher_errors_predict_the_scatter_of_weighted_fits():
     for _ in range(150):
         y = f0 + rng.normal(0, sig)
 
-        def res(x):
+        def res(x, y=y):
             return (ward_from_angles(ti, to, th, ph, WardParams(*np.maximum(x[:4], 1e-6), x[4])) - y) / sig
 
         est.append(least_squares(res, x0, method="lm").x)

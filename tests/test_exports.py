@@ -38,7 +38,7 @@ COLOUR = (1.0, 0.8, 0.6)
 NOISE = 0.03
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def geometry() -> pd.DataFrame:
     rig = load_rig(default_rig_path())
     return nominal_samples(rig, rig.select_leds("middle"), [-45, 0, 45, 90], 0.03)

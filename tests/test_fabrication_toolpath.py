@@ -205,7 +205,7 @@ def test_sweep_order_shortens_air_moves_and_never_loses(tmp_path):
     for img in (_photo(tmp_path), _image(tmp_path, "mid.png", np.full((50, 50), 0.3))):
         path = plan(img, 15.0, previews=False).toolpath
         order, _ = best_order(path, MACHINE)
-        legs = lambda o: MACHINE.travel_time_s(*path.reordered(o).travel_legs()).sum()
+        legs = lambda o, path=path: MACHINE.travel_time_s(*path.reordered(o).travel_legs()).sum()
         assert legs(order) <= legs(naive_order(path, MACHINE))
 
 

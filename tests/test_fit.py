@@ -27,7 +27,7 @@ TABLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "thesis" / "wa
 ROTATIONS = (-45, 0, 45, 90)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def geometry(scale: float = 0.05, leds: str = "middle", rotations=ROTATIONS) -> pd.DataFrame:
     rig = load_rig(default_rig_path())
     return nominal_samples(rig, rig.select_leds(leds), list(rotations), scale)

@@ -241,7 +241,7 @@ def test_diagnose_refuses_captures_from_different_rigs(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.mitsuba
-def test_diagnose_refuses_a_fit_of_another_material(chain, tmp_path):
+def test_diagnose_refuses_a_fit_of_another_material(chain, tmp_path):  # noqa: F811 - the fixture imported below
     """A fit that does not belong to the capture (white paper's Ward fit for a glossy sample)."""
     fit = {"luminance": {"rho_d": 0.8, "rho_s": 0.001, "alpha_x": 0.4, "alpha_y": 0.35, "lobe_rotation": 0.0}}
     (tmp_path / "fit.json").write_text(json.dumps(fit))

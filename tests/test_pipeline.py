@@ -54,14 +54,24 @@ def test_lamp_positions_within_2_mm(rigdata):
     assert max(err.values()) < 2.0, err
 
 
-def test_extracted_brdf_matches_truth(rigdata):
+@pytest.fixture(scope="module")
+def extracted(rigdata):
+    """The samples table of the module's captures, extracted once from the data folder with
+    relative paths as a user would type them (the provenance test checks they are recorded
+    as given)."""
+    out = rigdata / "samples.parquet"
+    r = subprocess.run([sys.executable, "-m", "glossrig.cli.main", "extract", "sample", "--reference", "reference",
+                        "--camera", "camera.json", "--lamps", "lamps.json", "--out", "samples.parquet",
+                        "--plots", "plots", "--no-progress"], cwd=rigdata, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return out
+
+
+def test_extracted_brdf_matches_truth(rigdata, extracted):
     from glossrig.core.samples import COLUMNS, read_samples
     from glossrig.core.ward import WardParams, ward_from_angles
 
-    out = rigdata / "samples.parquet"
-    glossrig("extract", rigdata / "sample", "--reference", rigdata / "reference", "--camera", rigdata / "camera.json",
-             "--lamps", rigdata / "lamps.json", "--out", out, "--plots", rigdata / "plots", "--no-progress")
-    df = read_samples(out)
+    df = read_samples(extracted)
     assert list(df.columns[:len(COLUMNS)]) == list(COLUMNS) or set(COLUMNS) <= set(df.columns)
     assert set(df.led.unique()) == {9}
     w = WardParams(**json.loads((rigdata / "sample" / "truth.json").read_text())["material"]["ward"])
@@ -118,7 +128,7 @@ def test_flipped_bytes_in_a_dng_stop_extract(rigdata, tmp_path):
     bad = tmp_path / "sample"
     shutil.copytree(rigdata / "sample", bad)
     man = json.loads((bad / "capture.json").read_text())
-    victim = [im for im in man["images"] if im["role"] == "sequence"][-1]["file"]
+    victim = [im for im in man["images"] if im["role"] == "sequence"][0]["file"]   # the first read: fails fast
     f = bad / victim
     with tifffile.TiffFile(f) as tf:
         page = tf.pages[0]
@@ -180,7 +190,7 @@ def test_reference_from_another_rig_or_rotation_set(rigdata, tmp_path):
         check_compatible(rigdata / "sample", rot)
 
 
-def test_extract_then_fit_record_their_provenance(rigdata, tmp_path):
+def test_extract_then_fit_record_their_provenance(rigdata, extracted, tmp_path):
     """Issue #16: samples.parquet records what it was made from (both manifests, the rig,
     camera.json, lamps.json with their sha256, the options, the version and the source
     commit) in its Parquet schema metadata, and fit.json records the samples file with that
@@ -197,11 +207,7 @@ def test_extract_then_fit_record_their_provenance(rigdata, tmp_path):
     def sha(p):
         return hashlib.sha256(p.read_bytes()).hexdigest()
 
-    out = tmp_path / "prov.parquet"
-    r = subprocess.run([sys.executable, "-m", "glossrig.cli.main", "extract", "sample", "--reference", "reference",
-                        "--camera", "camera.json", "--lamps", "lamps.json", "--reference-albedo", "0.75",
-                        "--out", str(out), "--no-progress"], cwd=rigdata, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr[-3000:]
+    out = extracted
     prov = json.loads(pq.read_schema(out).metadata[b"glossrig.provenance"])
     assert prov["tool"] == "glossrig extract" and prov["glossrig_version"] == version("glossrig")
     assert prov["source"] == source_revision()               # this checkout's commit (None from a wheel)
@@ -212,7 +218,7 @@ def test_extract_then_fit_record_their_provenance(rigdata, tmp_path):
         assert ins[name]["path"] == path and ins[name]["resolved"] == str((rigdata / path).resolve())
         assert ins[name]["sha256"] == sha(rigdata / hashed), name
     assert ins["sample_rig"]["sha256"] == sha(RIG)
-    assert prov["options"] == {"reference_albedo": 0.75, "estimator": "ml"}
+    assert prov["options"] == {"reference_albedo": 0.8, "estimator": "ml"}       # the defaults, recorded
     assert read_samples(out).attrs["provenance"] == prov
 
     fit = tmp_path / "fit.json"

@@ -163,7 +163,7 @@ def test_report_sections_say_what_they_hold(report, measured):
     html = report["html"].read_text()
     for text in (md, html):
         assert "noise-only" in text                    # the fit's standard errors keep their label
-        assert "Gloss units: not computed." in text   # no gloss in this fit.json
+        assert "extrapolated" in text and "gu85" in text   # the fit's gloss units with their model spread
         assert "Markers and poses: not drawn" in text  # no camera.json given
         assert "Camera calibration: not given." in text
     sha_capture = json.loads((measured["capture"] / "capture.json").read_text())  # noqa: F841 (readable)
@@ -199,6 +199,10 @@ def test_gloss_and_missing_inputs(measured, tmp_path):
     assert "HDR images: not computed" in text and "Sample: not given." in text
     assert "Renders: not rendered" in text and "Exports: not written." in text
     assert "Truth: not available" in text
+    fit = json.loads(measured["fit"].read_text())
+    fit["luminance"].pop("gloss", None)
+    html, md = write_report(tmp_path / "g", fit_json=fit, samples=measured["df"], hdr=False)
+    assert "Gloss units: not computed." in md.read_text()
     with pytest.raises(InputError, match="fit.json"):
         write_report(tmp_path / "s", fit_json=tmp_path / "nope.json", samples=measured["df"])
     with pytest.raises(InputError, match="no fitted channel"):

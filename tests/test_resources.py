@@ -102,6 +102,30 @@ def test_every_help_shows_defaults(capsys):
     assert "(default: " in _help(["model", "crossval"], capsys)
 
 
+def test_every_option_with_a_default_shows_it():
+    """Options without help text too: argparse prints nothing for them unless told to."""
+    import argparse
+
+    from glossrig.cli.main import build_parser
+
+    def parsers(p):
+        yield p
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for child in dict.fromkeys(a.choices.values()):
+                    yield from parsers(child)
+
+    missing = []
+    for p in parsers(build_parser()):
+        text = " ".join(p.format_help().split())
+        for a in p._actions:
+            if (a.option_strings and a.default not in (None, False, argparse.SUPPRESS)
+                    and not isinstance(a, argparse._VersionAction) and a.help != argparse.SUPPRESS):
+                if f"default: {a.default}" not in text and "default" not in (a.help or "").lower():
+                    missing.append(f"{p.prog} {a.option_strings[-1]}")
+    assert missing == []
+
+
 def test_version(capsys):
     from glossrig.core.resources import package_version
 

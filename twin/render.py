@@ -64,7 +64,7 @@ class LensMap:
     MAX_CANVAS_MP = 25.0
 
     @classmethod
-    def build(cls, camera, scale: float, margin_px: int = 3, supersample: int | None = None) -> "LensMap":
+    def build(cls, camera, scale: float, margin_px: int = 3, supersample: int | None = None) -> LensMap:
         """Lens map of ``camera`` at ``scale``; the canvas is ``supersample`` times finer
         than the output (default :attr:`DEFAULT_SUPERSAMPLE` within :attr:`MAX_CANVAS_MP`;
         1 = no supersampling)."""

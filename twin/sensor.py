@@ -119,7 +119,7 @@ class SensorContext:
     aperture: float
     frame_index: int
     rng: np.random.Generator
-    sensor: "SensorModel"
+    sensor: SensorModel
 
     @property
     def cfa(self) -> np.ndarray:
@@ -196,7 +196,7 @@ class SensorModel:
             raise InputError("sensor gain and full well must be > 0, read noise and dark current >= 0")
 
     @classmethod
-    def from_rig(cls, rig) -> "SensorModel":
+    def from_rig(cls, rig) -> SensorModel:
         """From a :class:`glossrig.core.rig.Rig`: ``rig.camera`` (cfa, bits,
         white_level, black_level) and the ``[sensor]`` section."""
         sec = rig.raw.get("sensor")

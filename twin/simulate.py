@@ -189,7 +189,6 @@ def checkerboard_poses(rig, lens, n: int, seed: int) -> list[tuple[np.ndarray, n
     sq = float(rig.section("checkerboard")["square"])
     obj = np.array([[i * sq, j * sq, 0.0] for j in range(ny) for i in range(nx)])
     Rc, tc = rig.camera.pose()
-    C = -Rc.T @ tc
     w, h = lens.size
     poses = []
     while len(poses) < n:

@@ -116,7 +116,6 @@ class VirtualRig:
     def points_mm(self) -> np.ndarray:
         """Holder-frame position (mm) of the surface each output pixel sees (0 where none)."""
         if self._points is None:
-            from .mitsuba_env import mitsuba
 
             scene, _ = sample_scene(self.rig, self.material, self._spec, Path(self._workdir.name), aov=True)
             aov = render_array(scene, spp=1)

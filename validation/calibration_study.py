@@ -221,7 +221,7 @@ def edge_offsets_at_truth(capture: Path, rig) -> dict:
             an = np.abs(n)
             groups = [np.flatnonzero(c == ch) for ch in range(3) if (c == ch).sum() >= 8]
 
-            def res(x, w=None):
+            def res(x, w=None, *, d0=d0, an=an, groups=groups, u=u, v=v):
                 phi = P.edge_profile(d0 - x[0], P.SIGMA_MIN + np.exp(x[1]), an.max(1), an.min(1))
                 r = []
                 for k, g in enumerate(groups):

@@ -286,7 +286,7 @@ def section_footprint(work: Path, rep: dict, ev: dict, runs: list[Path]) -> list
                                           f"--at-scale {q.stem.split('_at_')[1]}`" for q in preds) + ".", "",
                   *FP_HEADER]
         for q in preds:
-            for m, fp in json.loads(q.read_text()).items():
+            for _m, fp in json.loads(q.read_text()).items():
                 lines.append(_fp_row(fp, None))
         lines.append("")
     span = float(np.median([fp["block_span_deg"]["median"] for fp in fps.values()]))
@@ -362,7 +362,7 @@ def section_scale(runs: list[Path]) -> list[str]:
     fps = [fp for *_, fp in rows if fp]
     if fps:
         lines += ["", *FP_HEADER]
-        for (run, rep, m, e, err, fp) in rows:
+        for (_run, _rep, _m, _e, err, fp) in rows:
             if fp:
                 lines.append(_fp_row(fp, err))
     return lines + [""]

@@ -307,9 +307,7 @@ def add_optimise_arguments(p) -> None:
 
 
 def run_optimise(args) -> int:
-    import numpy as np
 
-    from glossrig.core import coverage as cov
     from glossrig.core import design as D
     from glossrig.core.rig import load_rig
 

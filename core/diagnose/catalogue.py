@@ -31,17 +31,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
-from scipy.ndimage import median_filter
 from scipy.optimize import minimize_scalar
 
 from glossrig.core.angles import ANGLE_COLUMNS
 from glossrig.core.cylinder import SurfaceSamples, sample_angles
 from glossrig.core.ward import WardParams, ward_from_angles
 
-from .data import BrdfData, FrameData
+from .data import BrdfData
 
 GAIN_THRESHOLD = 0.02      # relative held-out gain a BRDF-space cause must beat (null captures stay below)
 PARAM_PENALTY = 0.002      # added per extra parameter
@@ -109,11 +108,11 @@ class BrdfModel:
 
     data: BrdfData
     lobe: WardParams                         # the fit's lobe (rho_s = 1, rho_d = 0)
-    rows: "np.ndarray"                       # indices into data.table used
+    rows: np.ndarray                         # indices into data.table used
     cols: dict = field(default_factory=dict)
 
     @classmethod
-    def build(cls, data: BrdfData, fit: WardParams, seed: int = 0) -> "BrdfModel":
+    def build(cls, data: BrdfData, fit: WardParams, seed: int = 0) -> BrdfModel:
         t = data.table
         rng = np.random.default_rng(seed)
         rows = np.arange(len(t)) if len(t) <= MAX_BRDF_ROWS else np.sort(rng.choice(len(t), MAX_BRDF_ROWS, False))
@@ -204,7 +203,7 @@ def _brdf_scalar(m: BrdfModel, make: Callable[[float], tuple], bounds, grid_n=25
         _, p0, _ = m.solve_linear(basis0, train, f0)
         e0 = chi2((c["y"] - p0)[test], c["sigma"][test])
 
-        def train_cost(p):
+        def train_cost(p, train=train):
             basis, fac = make(p)
             _, pr, _ = m.solve_linear(basis, train, fac)
             return chi2((c["y"] - pr)[train], c["sigma"][train])

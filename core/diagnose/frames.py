@@ -174,7 +174,7 @@ def _frame_cause(fs: FrameSet, name, doc, pname, unit, bounds, make_pred, grid_n
     grid = np.linspace(*bounds, grid_n)
     for fold in fs.folds():
         e0 = _score(fs, lambda i, M: _linear_pred(fs, i, M), fold)
-        p, _, _ = _scalar_fit(lambda q: _train_cost(fs, make_pred(q), fold), bounds, grid_n)
+        p, _, _ = _scalar_fit(lambda q, fold=fold: _train_cost(fs, make_pred(q), fold), bounds, grid_n)
         e1 = _score(fs, make_pred(p), fold)
         prof += np.array([_score(fs, make_pred(q), fold) for q in grid]) / 2
         base_err += e0 / 2
@@ -225,13 +225,13 @@ def _drift_cause(fs: FrameSet) -> CauseResult:
         e0 = _score(fs, lambda i, M: _linear_pred(fs, i, M), fold)
         slopes = []
         for i in range(len(fs.Z)):
-            def cost(a, i=i):
+            def cost(a, i=i, tr=tr):
                 M = tr[i] & fs.ok[i]
                 pred = _linear_pred(fs, i, M, gain=1 + a * fs.tau[i])
                 return float(np.sum(np.where(M, (fs.Z[i] - pred) ** 2 / fs.V[i], 0.0)))
             a, _, _ = _scalar_fit(cost, bounds, 11)
             slopes.append(a)
-        e1 = _score(fs, lambda i, M: _linear_pred(fs, i, M, gain=1 + slopes[i] * fs.tau[i]), fold)
+        e1 = _score(fs, lambda i, M, slopes=slopes: _linear_pred(fs, i, M, gain=1 + slopes[i] * fs.tau[i]), fold)
         base_err += e0 / 2
         ext_err += e1 / 2
         gains.append((e0 - e1) / e0)

@@ -174,7 +174,7 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
 
     allrows = np.arange(len(c["y"]))
     for train, test in m.halves():
-        tr, te = allrows[train], allrows[test]
+        tr = allrows[train]
         x = fit(tr)
         fits.append(x)
         p0 = predict(base, allrows, tr)

@@ -124,7 +124,7 @@ class LobeFit:
         return d
 
     @classmethod
-    def from_ward(cls, w: WardParams) -> "LobeFit":
+    def from_ward(cls, w: WardParams) -> LobeFit:
         return cls("ward", w.rho_d, w.rho_s, w.alpha_x, w.alpha_y, w.lobe_rotation)
 
 

@@ -122,7 +122,7 @@ class Layout:
         return d
 
     @classmethod
-    def from_json(cls, d: dict, path=None) -> "Layout":
+    def from_json(cls, d: dict, path=None) -> Layout:
         try:
             return cls(a=int(d["a"]), b=int(d["b"]), rows=int(d["rows"]), cols=int(d["cols"]),
                        cell_mm=float(d["cell_mm"]), theta_rad=float(d["theta_rad"]),

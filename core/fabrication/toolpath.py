@@ -38,7 +38,7 @@ class Toolpath:
     def __len__(self) -> int:
         return int(self.x.size)
 
-    def reordered(self, order: np.ndarray) -> "Toolpath":
+    def reordered(self, order: np.ndarray) -> Toolpath:
         return Toolpath(self.x[order], self.y_start[order], self.y_end[order], self.home, self.cut_z, self.safe_z)
 
     def travel_legs(self) -> tuple[np.ndarray, np.ndarray]:

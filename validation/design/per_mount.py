@@ -54,7 +54,6 @@ def main(argv):
     for led in rig.leds:
         n, lit = bins(np.asarray(led.position))
         thesis.append((led.id, led.angle_deg, led.position[1], n, lit))
-    all16 = [np.asarray(led.position) for led in rig.leds]
     data = cov.collect(rig, pixels=px, rotations=[-45.0, 0.0, 45.0, 90.0], filters=("lit",))
     union16 = cov.coverage(data)["anisotropic_bins"]
     sum16 = sum(len(data.aniso[("lit", i, r)]) for i in rig.led_ids() for r in data.rotations)

@@ -323,8 +323,6 @@ def reading(results: dict) -> list[str]:
 
 
 def markdown(results: dict, a) -> str:
-    import numpy as np
-
     L = ["# Real measured BRDFs on the twin: what the thesis's model gets wrong (issue 7)", "",
          "Command (resumable; about 40 min on 2 cores, 78 min for the committed run with four other studies on the same cores):", "",
          "    nice -n 5 python validation/diagnose/rgl_study.py --work /tmp/rgl_study \\",
@@ -409,7 +407,6 @@ def markdown(results: dict, a) -> str:
                      f"{_pct(s['heldout']['median_abs_rel'])} ({_pct(s['heldout']['lobe_median_abs_rel'])}) | "
                      f"{100 * g[0]:+.0f} % / {100 * g[1]:+.0f} % | {ps} |")
         fr = r["fresnel"]
-        e = np.array(fr["rig_heldout_error"])
         free = fr["free_fit"]["params"]
         L += ["", f"**Fresnel (c)**: the held-out error of the rig's own data ({fr['folds']}) changes by "
               f"{100 * fr['rig_heldout_relative_range']:.3f} % over n = {fr['grid'][0]:g}..{fr['grid'][-1]:g} "

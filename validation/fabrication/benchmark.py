@@ -58,8 +58,9 @@ def main() -> int:
         for width in (10.0, 100.0):
             counter = iter(range(10**6))
             full, full_runs = _median_time(
-                lambda: fabricate(square, width, tmp / f"out{width:g}_{next(counter)}"), args.repeats)
-            bare, _ = _median_time(lambda: plan(square, width, previews=False), args.repeats)
+                lambda width=width, counter=counter: fabricate(square, width, tmp / f"out{width:g}_{next(counter)}"),
+                args.repeats)
+            bare, _ = _median_time(lambda width=width: plan(square, width, previews=False), args.repeats)
             p = plan(square, width, previews=False)
             t = time.perf_counter()
             subprocess.run([sys.executable, "-m", "glossrig.cli.main", "fabricate", str(square),
