@@ -4,7 +4,7 @@ recorded inputs match (issue #16; design.md "one output policy for every verb").
 Two pieces, shared by ``glossrig extract``, ``glossrig diagnose`` and ``glossrig demo``:
 
 * an input **fingerprint** (:func:`fingerprint`): the sha256 of every input file, the
-  run's options and the glossrig version. A capture folder is fingerprinted by its
+  run's options, the glossrig version and the source commit. A capture folder is fingerprinted by its
   manifest (:func:`capture_sha256`): capture.json records every raw file's checksum
   and every raw read verifies it, so the manifest stands for the whole capture.
   A step's result is reused only when its recorded fingerprint equals the current one
@@ -40,13 +40,21 @@ INPUTS = "inputs.json"
 
 
 def glossrig_version() -> str:
-    """The installed glossrig version (recorded with every fingerprint: a new version redoes)."""
-    from importlib.metadata import PackageNotFoundError, version
+    """The glossrig version (recorded with every fingerprint: a new version redoes);
+    :func:`glossrig.core.resources.package_version`."""
+    from .resources import package_version
 
-    try:
-        return version("glossrig")
-    except PackageNotFoundError:
-        return "unknown"
+    return package_version()
+
+
+def source_commit() -> str | None:
+    """The git commit of the running code when it is a checkout (None when installed):
+    recorded with every fingerprint, so a result made by other code is not reused. Edits
+    not yet committed are not seen; commit before relying on reuse across code changes."""
+    from .provenance import source_revision
+
+    rev = source_revision()
+    return None if rev is None else rev["commit"]
 
 
 def capture_sha256(folder) -> str:
@@ -73,10 +81,10 @@ def _jsonable(x: Any) -> Any:
 def fingerprint(files: dict | None = None, options: dict | None = None, captures: dict | None = None) -> dict:
     """What a result depends on: ``files`` (name -> path, hashed; None stays None),
     ``captures`` (name -> capture folder, hashed by manifest), ``options`` (JSON values)
-    and the glossrig version. Two fingerprints are equal iff all of these are."""
+    and the glossrig version and source commit. Two fingerprints are equal iff all of these are."""
     fp = {"files": {k: (sha256_file(v) if v is not None else None) for k, v in sorted((files or {}).items())},
           "captures": {k: capture_sha256(v) for k, v in sorted((captures or {}).items())},
-          "options": _jsonable(options or {}), "version": glossrig_version()}
+          "options": _jsonable(options or {}), "version": glossrig_version(), "source": source_commit()}
     # through JSON once, so a fingerprint compares equal to the same one read back from a file
     return json.loads(json.dumps(fp))
 

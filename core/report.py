@@ -581,7 +581,20 @@ def _truth_section(doc: _Doc, fit: dict, truth: dict | None, recovery: dict | No
                   "Truth recorded by the twin (truth.json) beside the luminance fit; errors relative except the "
                   "rotation (degrees, modulo 180), both in canonical form")
     if recovery:
-        doc.table(["quantity", "value"], [[k, v] for k, v in _flatten(recovery)], "Recovery table")
+        # the calibrations against the twin's truth (recovery.json, core.recovery); the material's
+        # truth against the fit is the table above
+        rows = []
+        i = recovery.get("intrinsics") or {}
+        if i:
+            rows += [["focal length fx", f"{i['fx_error_percent']:+.3f} %"],
+                     ["focal length fy", f"{i['fy_error_percent']:+.3f} %"],
+                     ["principal point", f"({i['cx_error_px']:+.2f}, {i['cy_error_px']:+.2f}) px"]]
+        lp = recovery.get("lamps") or {}
+        for led, e in sorted((lp.get("error_mm") or {}).items(), key=lambda kv: int(kv[0])):
+            rows.append([f"LED {led} position", f"{e:.2f} mm"])
+        if rows:
+            doc.table(["calibrated quantity", "error against the twin's truth"], rows,
+                      "Recovery of the calibrations used by this measurement (recovery.json)")
 
 
 def _exports_section(doc: _Doc, exports: list, out_dir: Path):

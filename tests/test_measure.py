@@ -97,7 +97,7 @@ def test_measure_writes_everything_and_redoes_exactly_what_changed(tiny_captures
         assert rec["material"]["error"][f"{k}_percent"] == pytest.approx(
             100 * (fit["luminance"][k] / true_ward[k] - 1), abs=1e-9)
     html = (out / "report.html").read_text()
-    assert "Recovery table" in html and "render sphere" in html
+    assert "Recovery of the calibrations" in html and "render sphere" in html
     stdout = capsys.readouterr().out
     assert "7 step(s) run, 0 reused" in stdout
 

@@ -47,6 +47,22 @@ def test_work_store_reuses_units_only_when_resuming_with_the_same_inputs(tmp_pat
     assert not (tmp_path / "out.partial").exists()
 
 
+def test_results_of_other_code_are_not_reused(tmp_path, monkeypatch):
+    """The fingerprint holds the version and the source commit: a unit made by another
+    commit of the code (same inputs, same options) is redone, not reused."""
+    import glossrig.core.checkpoint as cp
+
+    f = tmp_path / "input.txt"
+    f.write_text("a")
+    monkeypatch.setattr(cp, "source_commit", lambda: "1" * 40)
+    WorkStore(tmp_path / "out.partial", fingerprint(files={"in": f})).save("u", {"a": 1})
+    assert WorkStore(tmp_path / "out.partial", fingerprint(files={"in": f}), resume=True).units() == ["u"]
+    monkeypatch.setattr(cp, "source_commit", lambda: "2" * 40)
+    assert WorkStore(tmp_path / "out.partial", fingerprint(files={"in": f}), resume=True).units() == []
+    monkeypatch.setattr(cp, "glossrig_version", lambda: "9.9.9")
+    assert fingerprint(files={"in": f})["version"] == "9.9.9"
+
+
 def test_work_store_never_removes_a_foreign_folder(tmp_path):
     d = tmp_path / "samples.parquet.partial"
     d.mkdir()

@@ -39,6 +39,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 RIG = ROOT / "scenes/thesis_rig.toml"
 RGL = ROOT.parent / "shared/data/rgl"
@@ -100,6 +102,16 @@ def screenshot(html: Path, png: Path, width: int, height: int) -> None:
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=300)
     if not png.exists():
         raise SystemExit(f"chromium wrote no screenshot {png}")
+    # the whole page at half size in 256 colours: readable, and about a quarter of the bytes
+    from PIL import Image
+
+    with Image.open(png) as im:
+        im = im.convert("RGB")
+        rows = np.flatnonzero(np.asarray(im).min(axis=(1, 2)) < 250)        # drop the blank tail of the window
+        if rows.size:
+            im = im.crop((0, 0, im.width, min(im.height, int(rows[-1]) + 40)))
+        im = im.resize((im.width // 2, im.height // 2), Image.Resampling.LANCZOS)
+        im.quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(png, optimize=True)
 
 
 def collect(meas: Path, dest: Path, skipped: list) -> None:
@@ -107,10 +119,13 @@ def collect(meas: Path, dest: Path, skipped: list) -> None:
     if dest.exists():
         shutil.rmtree(dest)
     dest.mkdir(parents=True)
-    for name in ("report.html", "report.md", "fit.json", "recovery.json", "camera.json", "lamps.json"):
-        if (meas / name).exists():
-            shutil.copy(meas / name, dest / name)
-    for sub in ("report_figures", "exports"):
+    # report.md is left out: its figures (report_figures/) are the PNGs report.html embeds, and
+    # committing both would double the size; the command writes all three
+    for name in ("report.html", "fit.json", "recovery.json", "camera.json", "lamps.json"):
+        src = meas / name if (meas / name).exists() else meas.parent / name   # rgl: calibrations beside measure/
+        if src.exists():
+            shutil.copy(src, dest / name)
+    for sub in ("exports",):
         if not (meas / sub).is_dir():
             continue
         (dest / sub).mkdir()
@@ -150,6 +165,10 @@ def fit_budget(out: Path, max_bytes: int, skipped: list) -> None:
         skipped.append((str(f.relative_to(out)), f.stat().st_size,
                         "embedded byte for byte in report.html; left out for the size budget"))
         f.unlink()
+    for d in ("twin", "rgl"):
+        fig = out / d / "report_figures"
+        if fig.is_dir() and not any(fig.iterdir()):
+            fig.rmdir()
 
 
 def _fmt(x, nd=4) -> str:
@@ -171,10 +190,13 @@ def readme(out: Path, a, timings: dict, skipped: list, material: str) -> None:
          "scale); `glossrig measure SAMPLE --reference REF --camera camera.json --lamps lamps.json` with the default "
          "thesis normalisation (Lambertian reference of albedo 0.8) |", "",
          "Each folder holds `report.html` (self-contained: every figure embedded), `screenshot.png` (that page in "
-         f"headless Chromium, `--window-size={a.width},{a.height}`: the top {a.height} px of the page), `report.md` "
-         "with `report_figures/`, `fit.json`, `camera.json`, `lamps.json`, `exports/` (Mitsuba XML for the "
+         f"headless Chromium, `--window-size={a.width},{a.height}`, the whole page, stored at half size in 256 "
+         "colours), `fit.json`, `camera.json`, `lamps.json`, `exports/` (Mitsuba XML for the "
          "project's plugin and for stock plugins, BRDF Explorer `.brdf`, `samples.csv.json` describing the CSV) "
-         "and, on the twin, `recovery.json`. The report paths name the folders the measurement ran in (WORK).", ""]
+         "and `recovery.json` (the calibrations against the twin's truth; on twin/ also the material's Ward "
+         "parameters, which rgl/ has none of). The report paths name the folders the measurement ran in (WORK). "
+         "The command also writes `report.md` with its figures in `report_figures/` (the same PNGs report.html "
+         "embeds); they are not committed, to halve the size.", ""]
     rec = out / "twin/recovery.json"
     if rec.exists():
         r = json.loads(rec.read_text())
@@ -209,7 +231,11 @@ def readme(out: Path, a, timings: dict, skipped: list, material: str) -> None:
             L += ["", "Gloss of the fitted luminance model (fit.json): " +
                   ", ".join(f"{k} {_fmt(g.get(k), 3)}" for k in ("gu20", "gu60", "gu85", "haze", "doi") if k in g) +
                   " (60 and 85 deg gloss, haze and DOI are extrapolations beyond the rig's angles, see the report).", ""]
-    L += ["## Run", ""]
+    L += ["## Run time", "",
+          "From scratch on the 2-core development machine (nice -n 5): the twin demo about 10 min (four captures "
+          "and glossrig measure), the two RGL captures 2.4 and 1.3 min, the RGL glossrig measure 1.7 min "
+          "(extract 42 s, report 37 s), the screenshots a few seconds each. With every capture and step "
+          "complete in WORK a rerun takes about 10 s. This run (steps reused where WORK held them):", ""]
     L += [f"* {k}: {v:.0f} s" for k, v in timings.items()]
     L += ["", f"Committed size: {size(out) / 1e6:.1f} MB (budget --max-mb {a.max_mb:g}).", ""]
     if skipped:
@@ -247,11 +273,11 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", default=None, help="folder for captures and measurements (default: a new temp folder)")
     ap.add_argument("--out", default=str(ROOT / "validation/report_examples"))
-    ap.add_argument("--material", default="satin_rosaline_rgb", help="RGL material (a .bsdf in %s)" % RGL)
+    ap.add_argument("--material", default="satin_rosaline_rgb", help=f"RGL material (a .bsdf in {RGL})")
     ap.add_argument("--seed-twin", default=None, help="copy this earlier `glossrig demo` folder to WORK/twin "
                     "first (when WORK/twin does not exist), so that --resume reuses its steps")
     ap.add_argument("--width", type=int, default=1280)
-    ap.add_argument("--height", type=int, default=6000)
+    ap.add_argument("--height", type=int, default=16000)
     ap.add_argument("--max-mb", type=float, default=10.0)
     a = ap.parse_args(argv)
     work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="report_examples_"))
