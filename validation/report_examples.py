@@ -1,7 +1,7 @@
 """Example measurement reports (issue #17): one twin and one real-material (RGL) measurement,
 each with a headless-Chromium screenshot of its HTML report.
 
-    nice -n 5 python validation/report_examples.py [--work DIR] [--out validation/report_examples]
+    nice -n 5 python -m validation.report_examples [--work DIR] [--out validation/report_examples]
 
 * twin: ``glossrig demo --out WORK/twin --resume`` (sample_2_6, scale 0.25, the middle-row
   LEDs, rotation 0: checkerboard, transparency-sheet, lambert:0.8 reference and sample
@@ -41,11 +41,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from validation.paths import ROOT, rgl_dir
+
 RIG = ROOT / "scenes/thesis_rig.toml"
-RGL = ROOT.parent / "shared/data/rgl"
-if not RGL.is_dir():
-    RGL = Path("/work/shared/data/rgl")
 SCALE = 0.25
 REF_SEED, SAMPLE_SEED = 5, 6          # the twin demo uses seeds 1-4
 ALWAYS_SKIP = {"samples.parquet", "samples.csv"}
@@ -82,8 +80,9 @@ def twin(work: Path, seed_from: str | None) -> Path:
 def rgl(work: Path, material: str, twin_dir: Path) -> Path:
     d = work / "rgl"
     d.mkdir(parents=True, exist_ok=True)
-    ref = simulate(d / "reference", f"measured:{RGL / 'paper_white_rgb.bsdf'}", REF_SEED)
-    sample = simulate(d / "sample", f"measured:{RGL / (material + '.bsdf')}", SAMPLE_SEED)
+    rgl = rgl_dir()
+    ref = simulate(d / "reference", f"measured:{rgl / 'paper_white_rgb.bsdf'}", REF_SEED)
+    sample = simulate(d / "sample", f"measured:{rgl / (material + '.bsdf')}", SAMPLE_SEED)
     for name in ("camera.json", "lamps.json"):
         src, dst = twin_dir / name, d / name
         if not dst.exists() or dst.read_bytes() != src.read_bytes():
@@ -178,7 +177,7 @@ def _fmt(x, nd=4) -> str:
 def readme(out: Path, a, timings: dict, skipped: list, material: str) -> None:
     L = ["# Example measurement reports (issue #17)", "",
          "Made by one command (captures reused from WORK when complete; WORK defaults to a temporary folder):", "",
-         "    nice -n 5 python validation/report_examples.py --work WORK [--seed-twin EARLIER_DEMO_DIR]", "",
+         "    nice -n 5 python -m validation.report_examples --work WORK [--seed-twin EARLIER_DEMO_DIR]", "",
          "| folder | measurement |", "|---|---|",
          "| twin/ | `glossrig demo --out WORK/twin --resume`: the twin's sample_2_6 (an extended-Ward material with "
          "known parameters), scale 0.25, middle-row LEDs 5-12, rotation 0, lambert:0.8 reference; camera and lamps "
@@ -273,7 +272,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", default=None, help="folder for captures and measurements (default: a new temp folder)")
     ap.add_argument("--out", default=str(ROOT / "validation/report_examples"))
-    ap.add_argument("--material", default="satin_rosaline_rgb", help=f"RGL material (a .bsdf in {RGL})")
+    ap.add_argument("--material", default="satin_rosaline_rgb", help="RGL material (a .bsdf in SHARED/data/rgl, validation.paths)")
     ap.add_argument("--seed-twin", default=None, help="copy this earlier `glossrig demo` folder to WORK/twin "
                     "first (when WORK/twin does not exist), so that --resume reuses its steps")
     ap.add_argument("--width", type=int, default=1280)

@@ -1,10 +1,10 @@
 """Twin confirmation of the rig design and of the exposure plans (issue 8).
 
-    python validation/design/twin_study.py exposures --work /tmp/design_twin25 --scale 0.25 \\
+    python -m validation.design.twin_study exposures --work /tmp/design_twin25 --scale 0.25 \\
         --materials sample_2_6,brushed_original --seeds 1,2,3
-    python validation/design/twin_study.py rigs --work /tmp/design_twin25 --scale 0.25 \\
+    python -m validation.design.twin_study rigs --work /tmp/design_twin25 --scale 0.25 \\
         --materials sample_2_6 --seeds 1,2
-    python validation/design/twin_study.py report --work /tmp/design_twin25 --scale 0.25   # -> twin.md
+    python -m validation.design.twin_study report --work /tmp/design_twin25 --scale 0.25   # -> twin.md
 
 (`exposures` and `rigs` may run at the same time; scale 0.125 fails the holder-marker
 pose refinement, validation/design/README.md section 5.)
@@ -41,7 +41,6 @@ import json
 import math
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -51,8 +50,7 @@ from glossrig.core.fit import parameter_errors
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
-sys.path.insert(0, str(HERE.parent))
-from pipeline_study import glossrig  # noqa: E402
+from validation.pipeline_study import glossrig
 
 THESIS = ROOT / "scenes/thesis_rig.toml"
 OPTIMISED = ROOT / "scenes/optimised_rig.toml"
@@ -224,7 +222,7 @@ def report(a) -> str:
         return f"{v:.2f}" if k == "lobe_rotation_deg" else f"{100 * v:+.2f} %"
 
     lines = ["# Twin confirmation of the design and the exposure plans (issue 8)", "",
-             f"Commands: `python validation/design/twin_study.py exposures|rigs --work {a.work} --scale {a.scale} "
+             f"Commands: `python -m validation.design.twin_study exposures|rigs --work {a.work} --scale {a.scale} "
              "--materials ... --seeds ...`, then `... report --work ...` (this file). Truth intrinsics and lamp "
              "positions (the design is compared, not the calibration); thesis LED jitter and drift and sensor "
              "noise on; luminance fit; errors fitted/true - 1, lobe rotation in degrees modulo pi.", ""]

@@ -1,6 +1,6 @@
 """Blind study of glossrig diagnose (issue 7): hidden causes at seeded random magnitudes.
 
-    nice -n 5 python validation/diagnose/blind_study.py --work /tmp/blind --trials 55
+    nice -n 5 python -m validation.diagnose.blind_study --work /tmp/blind --trials 55
 
 Calibration (first run, in WORK/calibration, unless --camera, --lamps and --reference
 name one of the nominal rig at scale 0.25): camera and lamps by
@@ -39,9 +39,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "validation"))
-from pipeline_study import calibrate, simulate as simulate_capture  # noqa: E402
-from provenance import code_version  # noqa: E402
+from validation.pipeline_study import calibrate, simulate as simulate_capture
+from validation.provenance import code_version
 
 RIG = ROOT / "scenes/thesis_rig.toml"
 OUT = Path(__file__).parent / "blind_study.md"
@@ -285,7 +284,7 @@ def summarise(trials: list[dict], work: Path | None = None) -> str:
     L = ["# diagnose blind study", "",
          "Regenerate everything - calibration, trials, independent null captures, this file (resumable; on the "
          "shared 2-core machine calibration took ~3 min, a trial 16-62 s, an independent null 2-3 min):", "",
-         "    nice -n 5 python validation/diagnose/blind_study.py --work /tmp/blind --trials 55", "",
+         "    nice -n 5 python -m validation.diagnose.blind_study --work /tmp/blind --trials 55", "",
          f"Set-up: sample_2_6 on the thesis rig, LEDs {LEDS}, rotation 0, scale 0.25, `--ideal`; one nominal "
          "camera/lamp calibration and lambert:0.8 reference for all trials (the study's own, WORK/calibration, unless "
          "given); material fit from one null capture "

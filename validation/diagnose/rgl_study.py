@@ -1,6 +1,6 @@
 """Real measured BRDFs on the twin: what the thesis's model gets wrong (issue 7, real data).
 
-    nice -n 5 python validation/diagnose/rgl_study.py --work /tmp/rgl_study \
+    nice -n 5 python -m validation.diagnose.rgl_study --work /tmp/rgl_study \
         [--camera camera.json --lamps lamps.json] [--rotations 0,90]
 
 The four RGL materials of ../shared/data/rgl (Dupuy & Jakob, "An Adaptive
@@ -29,13 +29,12 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "validation"))
-from pipeline_study import calibrate, simulate  # noqa: E402  (one way to script the chain)
-from provenance import code_version, describe, record  # noqa: E402
+from glossrig.core.capture import capture_complete
+from validation.paths import rgl_dir
+from validation.pipeline_study import calibrate, simulate   # one way to script the chain
+from validation.provenance import code_version, describe, record
 
-from glossrig.core.capture import capture_complete  # noqa: E402
-
-RGL = Path("/work/shared/data/rgl") if not (ROOT.parent / "shared/data/rgl").is_dir() else ROOT.parent / "shared/data/rgl"
+RGL = rgl_dir()
 MATERIALS = ("satin_rosaline_rgb", "vch_golden_yellow_rgb", "cc_ibiza_sunset_rgb", "paper_white_rgb")
 REFERENCE = RGL / "paper_white_rgb.bsdf"
 
@@ -325,7 +324,7 @@ def reading(results: dict) -> list[str]:
 def markdown(results: dict, a) -> str:
     L = ["# Real measured BRDFs on the twin: what the thesis's model gets wrong (issue 7)", "",
          "Command (resumable; about 40 min on 2 cores, 78 min for the committed run with four other studies on the same cores):", "",
-         "    nice -n 5 python validation/diagnose/rgl_study.py --work /tmp/rgl_study \\",
+         "    nice -n 5 python -m validation.diagnose.rgl_study --work /tmp/rgl_study \\",
          "        --camera CAMERA.json --lamps LAMPS.json      # optional: reuse calibrations of this rig and scale", "",
          f"Report written at commit {describe(code_version())}. The study is resumable: stages found in WORK are "
          "reused, so they may have run at other commits; each stage run records its commit in "

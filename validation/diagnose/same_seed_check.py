@@ -1,7 +1,7 @@
 """Why diagnose misreads a cause's magnitude: a same-seed pair of captures, with and without it.
 
-    nice -n 10 python validation/diagnose/same_seed_check.py --work /tmp/blind --effect vignetting=0.2
-    nice -n 10 python validation/diagnose/same_seed_check.py --work /tmp/blind --effect stray_light=0.007
+    nice -n 10 python -m validation.diagnose.same_seed_check --work /tmp/blind --effect vignetting=0.2
+    nice -n 10 python -m validation.diagnose.same_seed_check --work /tmp/blind --effect stray_light=0.007
 
 WORK is a blind-study work folder (validation/diagnose/blind_study.py): its calibration,
 reference, material fit and null capture (whose poses every capture is measured with) are
@@ -23,13 +23,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-import blind_study  # noqa: E402
+from validation.diagnose import blind_study
 
 
 def data_k(ratio: np.ndarray, q: np.ndarray) -> float:

@@ -1,0 +1,1 @@
+"""Rig design studies (run as ``python -m validation.design.NAME``)."""

@@ -1,0 +1,1 @@
+"""Studies of the diagnose verb (run as ``python -m validation.diagnose.NAME``)."""
