@@ -92,14 +92,20 @@ def read_fit_json(path: str | Path):
     after the fit (``provenance``, and any other top-level or per-channel extras, which
     are ignored here; read the file's ``provenance`` with :func:`read_fit_provenance`).
     Errors name the file."""
+    from .toml_input import read_json
+
+    path = Path(path)
+    return fit_from_doc(read_json(path, "fit file"), path)
+
+
+def fit_from_doc(doc, path: str | Path | None = None):
+    """The :class:`~glossrig.core.fit.MaterialFit` of a parsed fit.json document (what
+    :func:`read_fit_json` reads; ``path`` only names the file in errors)."""
     import numpy as np
 
     from .fit import CHANNELS, PARAM_NAMES, MaterialFit, WardFit
 
-    from .toml_input import read_json
-
-    path = Path(path)
-    doc = read_json(path, "fit file")
+    path = Path(path) if path is not None else None
     if not isinstance(doc, dict) or doc.get("format") != FIT_FORMAT:
         got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
         raise InputError(f"not a glossrig fit file (format {got!r}, expected {FIT_FORMAT!r})", path=path)

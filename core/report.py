@@ -35,12 +35,12 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 from collections.abc import Callable
 
 import numpy as np
 
 from .errors import InputError
+from .export import fit_from_doc
 from .toml_input import read_json
 
 FIGURES = "report_figures"
@@ -223,21 +223,6 @@ def _load_json(x, what: str) -> dict | None:
     if isinstance(x, dict):
         return x
     return read_json(x, what)
-
-
-def fit_from_json(doc: dict, channel: str = "luminance") -> SimpleNamespace:
-    """The parts of a :class:`glossrig.core.fit.WardFit` the plots use, from fit.json."""
-    from .ward import WardParams
-
-    c = doc.get(channel)
-    if not isinstance(c, dict):
-        raise InputError(f"fit.json has no {channel!r} fit")
-    try:
-        p = WardParams(**{k: float(c[k]) for k in PARAMS})
-    except KeyError as e:
-        raise InputError(f"fit.json's {channel!r} fit lacks {e.args[0]!r}") from None
-    return SimpleNamespace(channel=channel, params=p, clip=c.get("clip"), clip_model=bool(c.get("clip_model", True)),
-                           residuals={k: (float("nan") if v is None else v) for k, v in (c.get("residuals") or {}).items()})
 
 
 def _short(sha: str | None) -> str:
@@ -666,7 +651,10 @@ def write_report(out_dir, *, fit_json, samples, sample_dir=None, reference_dir=N
         gloss = fit["luminance"].get("gloss")
     channel = "luminance" if isinstance(fit.get("luminance"), dict) else next(
         c for c in ("r", "g", "b") if isinstance(fit.get(c), dict))
-    wfit = fit_from_json(fit, channel)
+    fits = fit_from_doc(fit).fits            # the one fit.json reader (core.export)
+    if channel not in fits:
+        raise InputError(f"fit.json has no {channel!r} fit")
+    wfit = fits[channel]
     material = None
     if sample_dir is not None:
         try:

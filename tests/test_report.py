@@ -206,7 +206,9 @@ def test_gloss_and_missing_inputs(measured, tmp_path):
     with pytest.raises(InputError, match="fit.json"):
         write_report(tmp_path / "s", fit_json=tmp_path / "nope.json", samples=measured["df"])
     with pytest.raises(InputError, match="no fitted channel"):
-        write_report(tmp_path / "t", fit_json={"format": "x"}, samples=measured["df"])
+        write_report(tmp_path / "t", fit_json={"format": "glossrig-fit/1"}, samples=measured["df"])
+    with pytest.raises(InputError, match="no fitted channel"):
+        write_report(tmp_path / "u", fit_json={"format": "x"}, samples=measured["df"])
 
 
 # ------------------------------------------------------------------ figures
@@ -301,7 +303,7 @@ def _check_figure(fig, name):
 
 def test_figures_have_labelled_axes_and_no_overlapping_ticks(measured, tmp_path, monkeypatch):
     from glossrig.core import fit_plots, report_figures
-    from glossrig.core.report import fit_from_json
+    from glossrig.core.export import fit_from_doc
     from glossrig.core.ward import WardParams
 
     captured = {}
@@ -316,7 +318,7 @@ def test_figures_have_labelled_axes_and_no_overlapping_ticks(measured, tmp_path,
 
     monkeypatch.setattr(plt, "close", keep)
     df = measured["df"]
-    fit = fit_from_json(json.loads(measured["fit"].read_text()))
+    fit = fit_from_doc(json.loads(measured["fit"].read_text())).fits["luminance"]
     paths = {
         "slices": report_figures.plot_incidence_slices(df, fit, tmp_path / "s.png", truth=WardParams(**TRUTH)),
         "coverage": report_figures.plot_coverage(df, tmp_path / "c.png"),
