@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
-from .errors import InputError
+from glossrig.core.errors import InputError
 
 MANIFEST = "capture.json"
 TRUTH = "truth.json"
@@ -212,13 +212,13 @@ class Manifest:
         return sorted({im.rotation for im in self.images if im.role == "sequence"})
 
     def read_raw(self, im: ImageEntry, crop=None):
-        """Decode one of this capture's raw files (:func:`glossrig.core.raw.read_raw`),
+        """Decode one of this capture's raw files (:func:`glossrig.core.calibration.raw.read_raw`),
         checked against what the manifest recorded: its sha256 (hashed from the same
         bytes that are decoded, so the check costs one pass over data already in
         memory) and its exposure time, ISO and f-number. Every pipeline stage reads
         capture images through here, so a file changed since capture stops with
         "checksum does not match capture.json" naming it, never silently wrong values."""
-        from .raw import read_raw
+        from glossrig.core.calibration.raw import read_raw
 
         return read_raw(self.folder / im.file, crop=crop, exposure_s=im.exposure_s, iso=im.iso,
                         aperture=im.aperture, sha256=im.sha256)

@@ -30,8 +30,8 @@ from pathlib import Path
 from collections.abc import Callable
 from typing import Any
 
-from .capture import MANIFEST, sha256_file
-from .errors import InputError
+from glossrig.core.capture import MANIFEST, sha256_file
+from glossrig.core.errors import InputError
 
 _log = logging.getLogger(__name__)
 
@@ -42,7 +42,7 @@ INPUTS = "inputs.json"
 def glossrig_version() -> str:
     """The glossrig version (recorded with every fingerprint: a new version redoes);
     :func:`glossrig.core.resources.package_version`."""
-    from .resources import package_version
+    from glossrig.core.resources import package_version
 
     return package_version()
 
@@ -51,7 +51,7 @@ def source_commit() -> str | None:
     """The git commit of the running code when it is a checkout (None when installed):
     recorded with every fingerprint, so a result made by other code is not reused. Edits
     not yet committed are not seen; commit before relying on reuse across code changes."""
-    from .provenance import source_revision
+    from glossrig.core.provenance import source_revision
 
     rev = source_revision()
     return None if rev is None else rev["commit"]

@@ -33,9 +33,9 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-from .capture import MANIFEST, sha256_file
-from .checkpoint import _jsonable, glossrig_version
-from .errors import InputError
+from glossrig.core.capture import MANIFEST, sha256_file
+from glossrig.core.checkpoint import _jsonable, glossrig_version
+from glossrig.core.errors import InputError
 
 #: the source checkout's root when glossrig runs from one (core/ is a top-level folder)
 SOURCE_ROOT = Path(__file__).resolve().parents[1]

@@ -16,7 +16,7 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-from .errors import InputError
+from glossrig.core.errors import InputError
 
 #: the package the ``scenes/`` folder is installed as
 SCENES_PACKAGE = "glossrig.scenes"

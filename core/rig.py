@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .resources import resolve_input, scenes_dir
-from .toml_input import read_toml
+from glossrig.core.errors import InputError
+from glossrig.core.resources import resolve_input, scenes_dir
+from glossrig.core.toml_input import read_toml
 
 #: the folder holding core/: the checkout's root, or site-packages/glossrig when installed
 REPO_ROOT = Path(__file__).resolve().parent.parent

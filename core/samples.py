@@ -8,7 +8,7 @@ column                      dtype     meaning
 theta_in, theta_out         float64   zenith of the light / camera direction, [0, pi/2)
 phi_in, phi_out             float64   azimuth from the tangent, counter-clockwise, [0, 2 pi)
 theta_h, phi_h              float64   half vector (thesis 4.3.5, eq. 4.64-4.72 corrected
-                                      in :mod:`glossrig.core.angles`)
+                                      in :mod:`glossrig.core.models.angles`)
 theta_d, phi_d              float64   Rusinkiewicz difference angles (EGWR 1998)
 r, g, b                     float64   BRDF value per colour channel, 1/sr (thesis eq. 4.78)
 weight                      float64   relative statistical weight of the row, >= 0; taken
@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .angles import ANGLE_COLUMNS
-from .errors import InputError
+from glossrig.core.models.angles import ANGLE_COLUMNS
+from glossrig.core.errors import InputError
 
 FORMAT = "glossrig-samples/1"
 VALUE_COLUMNS = ("r", "g", "b")
@@ -168,7 +168,7 @@ def _provenance_of(meta: dict | None, path) -> dict | None:
     """The provenance JSON of a Parquet schema's metadata (None when not recorded)."""
     import json
 
-    from .provenance import PARQUET_KEY
+    from glossrig.core.provenance import PARQUET_KEY
 
     raw = (meta or {}).get(PARQUET_KEY)
     if raw is None:
@@ -207,7 +207,7 @@ def write_samples(df: pd.DataFrame, path: str | Path, *, overwrite: bool = True,
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from .capture import atomic_write_bytes
+    from glossrig.core.capture import atomic_write_bytes
 
     path = Path(path)
     if path.exists() and not overwrite:
@@ -222,7 +222,7 @@ def write_samples(df: pd.DataFrame, path: str | Path, *, overwrite: bool = True,
     if provenance is not None:
         import json
 
-        from .provenance import PARQUET_KEY
+        from glossrig.core.provenance import PARQUET_KEY
 
         meta[PARQUET_KEY] = json.dumps(provenance, sort_keys=True, allow_nan=False).encode()
     table = table.replace_schema_metadata(meta)
@@ -237,8 +237,8 @@ def ward_samples(geometry: pd.DataFrame, params, *, noise: float = 0.0, seed: in
     """A samples table of a known extended-Ward material (eq. 4.79-4.80) at given angles.
 
     ``geometry``: a frame with the angle columns, ``u, v, led, rotation`` - e.g.
-    :func:`glossrig.core.cylinder.nominal_samples`, the angles the rig measures.
-    ``params``: one :class:`~glossrig.core.ward.WardParams` for all channels or
+    :func:`glossrig.core.extraction.cylinder.nominal_samples`, the angles the rig measures.
+    ``params``: one :class:`~glossrig.core.models.ward.WardParams` for all channels or
     a mapping ``{"r": .., "g": .., "b": ..}``; ``colour`` scales ``rho_d`` and
     ``rho_s`` of a single parameter set per channel. ``noise``: standard
     deviation of independent multiplicative Gaussian noise (``f * (1 + noise * N(0,1))``),
@@ -247,7 +247,7 @@ def ward_samples(geometry: pd.DataFrame, params, *, noise: float = 0.0, seed: in
     """
     from dataclasses import replace
 
-    from .ward import ward_from_angles
+    from glossrig.core.models.ward import ward_from_angles
 
     if isinstance(params, dict):
         per = {c: params[c] for c in VALUE_COLUMNS}

@@ -7,7 +7,7 @@ import json
 import tomllib
 from pathlib import Path
 
-from .errors import InputError
+from glossrig.core.errors import InputError
 
 
 def _read_parsed(path, what: str, parse, syntax_error, unreadable: str, invalid: str):

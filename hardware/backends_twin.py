@@ -138,7 +138,7 @@ def _check_sample_label(plan: CapturePlan, material) -> None:
     material (a spec or a scenes/materials name) it must be the one the twin renders: a
     capture labelled sample_2_6 that holds a lambert:0.8 render is silently wrong data.
     Free-text labels ("white paper, batch 3") cannot be compared and are left alone."""
-    from glossrig.core.materials import parse_material
+    from glossrig.core.models.materials import parse_material
 
     try:
         named = parse_material(plan.sample)
@@ -152,7 +152,7 @@ def _check_sample_label(plan: CapturePlan, material) -> None:
 
 def make_twin_backends(plan: CapturePlan) -> tuple[TwinLights, TwinCamera, TwinOperator]:
     """One :class:`VirtualRig` from the plan's rig and ``[twin]`` table, behind the three adapters."""
-    from glossrig.core.materials import parse_material
+    from glossrig.core.models.materials import parse_material
     from glossrig.twin.effects import THESIS_FLUCTUATIONS, parse_effects
     from glossrig.twin.virtual_rig import VirtualRig
 

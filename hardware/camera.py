@@ -8,13 +8,13 @@ here the camera is driven through the python-gphoto2 binding (no shell at all) a
 every shot goes to the path the orchestrator names.
 
 Confirmation (:func:`confirm_shot`): whatever the driver believes it set, the file is
-read back with the pipeline's own reader (:func:`glossrig.core.raw.read_exif`, plus
+read back with the pipeline's own reader (:func:`glossrig.core.calibration.raw.read_exif`, plus
 LibRaw must be able to open it) and its exposure time, ISO and f-number are compared
 with the request. A camera whose mode dial was left on "A", a shutter-speed table
 without the requested value, or a file from the wrong shot all stop the capture
 instead of silently entering the HDR merge (thesis 4.3.4) with a wrong exposure.
 Tolerances: exposure and f-number within 10 %, the tolerance with which the pipeline
-cross-checks manifest and file (:func:`glossrig.core.raw.read_raw`), so every shot
+cross-checks manifest and file (:func:`glossrig.core.calibration.raw.read_raw`), so every shot
 accepted here is accepted there (the thesis's 0.0166 s is the camera's 1/60 s, 0.4 %
 apart); ISO within 1 %. The same tolerances decide, before anything is shot, whether
 the camera offers a setting close enough to the plan's.
@@ -33,7 +33,7 @@ from glossrig.core.errors import InputError
 from .errors import CameraDisconnected, CameraError
 
 #: Largest accepted relative deviation between requested and recorded exposure / f-number
-#: (that of glossrig.core.raw.read_raw's cross-check) and ISO.
+#: (that of glossrig.core.calibration.raw.read_raw's cross-check) and ISO.
 REL_TOLERANCE = 0.10
 ISO_TOLERANCE = 0.01
 
@@ -94,7 +94,7 @@ def confirm_shot(path: str | Path, *, exposure_s: float, iso: float, aperture: f
     by more than 1 %.
     """
     import rawpy
-    from glossrig.core.raw import read_exif
+    from glossrig.core.calibration.raw import read_exif
 
     path = Path(path)
     try:

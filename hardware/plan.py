@@ -9,7 +9,7 @@ cylinder (thesis 6.2: -45, 0, 45 and 90 degrees) repeats all of that per rotatio
 The plan file's format is :data:`PLAN_FORMAT` (also printed by ``glossrig capture --help``).
 Its optional ``[led_exposures_s]`` table gives LEDs their own exposure sequences (an
 extension of the thesis's one table for all, written by ``glossrig design exposures``,
-:mod:`glossrig.core.exposure_plan`); every other LED uses ``exposures_s``.
+:mod:`glossrig.core.radiometry.exposure_plan`); every other LED uses ``exposures_s``.
 
 Time. The physical floor of a plan is the sum of its exposure times. The thesis
 measured "on average 4 minutes" per 18-exposure sequence (4.2.3); those 18 exposures

@@ -111,14 +111,14 @@ def glossrig_cli(*args, timeout: float = 600):
 
 
 def camera_json_from_truth(truth: dict) -> dict:
-    """A camera calibration file (glossrig.core.intrinsics format) holding the twin's true intrinsics."""
+    """A camera calibration file (glossrig.core.calibration.intrinsics format) holding the twin's true intrinsics."""
     K = truth["camera_matrix"]
     return {"format": "glossrig camera calibration", "version": 1, "fx": K[0][0], "fy": K[1][1], "cx": K[0][2],
             "cy": K[1][2], "distortion": truth["distortion"], "image_size": truth["image_size"]}
 
 
 def lamps_json_from_truth(truth: dict, leds=("9",)) -> dict:
-    """A lamp calibration file (glossrig.core.lamps format) holding the twin's true positions of ``leds``."""
+    """A lamp calibration file (glossrig.core.calibration.lamps format) holding the twin's true positions of ``leds``."""
     return {"kind": "glossrig.lamps", "lamps_mm": {k: v for k, v in truth["led_positions_mm"].items() if k in leds}}
 
 

@@ -18,10 +18,10 @@ import pytest
 
 from glossrig.core.capture import load_manifest
 from glossrig.core.errors import InputError
-from glossrig.core.intrinsics import CameraCalibration, load_camera, save_camera
-from glossrig.core.markers import cylinder_marker_corners, holder_marker_corners
-from glossrig.core.marker_detect import order_corners
-from glossrig.core.poses import (calibrate_capture, camera_in_holder, relative_to_holder, rotation_angle_deg)
+from glossrig.core.calibration.intrinsics import CameraCalibration, load_camera, save_camera
+from glossrig.core.calibration.markers import cylinder_marker_corners, holder_marker_corners
+from glossrig.core.calibration.marker_detect import order_corners
+from glossrig.core.calibration.poses import (calibrate_capture, camera_in_holder, relative_to_holder, rotation_angle_deg)
 
 from conftest import RIG
 
@@ -108,8 +108,8 @@ def test_intrinsics_recover_the_twin_camera(checker_capture, camera_json):
 
 
 def test_views_without_a_board_are_skipped_and_too_few_views_stop(checker_capture, tmp_path):
-    from glossrig.core.intrinsics import calibrate_intrinsics
-    from glossrig.core.raw import cfa_string, read_raw
+    from glossrig.core.calibration.intrinsics import calibrate_intrinsics
+    from glossrig.core.calibration.raw import cfa_string, read_raw
     from glossrig.twin.dng import write_dng
 
     dst = tmp_path / "checker"
@@ -133,7 +133,7 @@ def test_views_without_a_board_are_skipped_and_too_few_views_stop(checker_captur
 
 
 def test_checkerboard_folder_errors(checker_capture, tmp_path):
-    from glossrig.core.intrinsics import calibrate_intrinsics
+    from glossrig.core.calibration.intrinsics import calibrate_intrinsics
 
     dst = tmp_path / "checker"
     shutil.copytree(checker_capture, dst)
@@ -281,7 +281,7 @@ def test_camera_file_for_another_image_size_is_refused(sample_capture, true_came
 
 def _tampered(src: Path, dst: Path, paint) -> Path:
     """Copy a capture and rewrite its calibration DNG after ``paint(mosaic, black)``."""
-    from glossrig.core.raw import cfa_string, read_raw
+    from glossrig.core.calibration.raw import cfa_string, read_raw
     from glossrig.twin.dng import write_dng
 
     shutil.copytree(src, dst)
@@ -432,8 +432,7 @@ def _exact_holder_image(rig, sigma=0.45):
     """A fronto-parallel holder marker rendered exactly (no lens distortion): each
     pixel integrates the Gaussian-blurred red frame and white patch over its area
     (separable for axis-aligned rectangles), then RGGB-sampled."""
-    from glossrig.core import poses as P
-
+    from glossrig.core.calibration import poses as P
     K = np.array([[2000.0, 0, 199.5], [0, 2000.0, 199.5], [0, 0, 1]])
     R, t = np.diag([1.0, -1, -1]), np.array([0.0, -50, 500])
     u = np.arange(400.0)
@@ -459,8 +458,7 @@ def test_edge_refinement_is_exact_on_an_exact_image(rig):
     """On an image that matches its model the raw-edge refinement returns the true
     pose from a start 0.3 deg / 0.5 mm off (so the twin's residual errors are the
     twin image's, not the estimator's)."""
-    from glossrig.core import poses as P
-
+    from glossrig.core.calibration import poses as P
     lin, cfa, K, R, t = _exact_holder_image(rig)
     R0, t0 = R @ cv2.Rodrigues(np.radians([0.3, -0.3, 0.1]))[0], t + [0.3, -0.3, 0.3]
     for edges in (P.holder_edges(rig)[4:], P.holder_edges(rig)):
@@ -473,8 +471,7 @@ def test_edge_refinement_is_exact_on_an_exact_image(rig):
 def test_edge_refinement_uncertainty_is_honest(rig):
     """With shot and read noise, the scatter of the fitted tilt over noise draws
     agrees with the standard deviation the fit reports (within a factor 2)."""
-    from glossrig.core import poses as P
-
+    from glossrig.core.calibration import poses as P
     lin, cfa, K, R, t = _exact_holder_image(rig)
     errs, stds = [], []
     for s in range(8):
@@ -496,9 +493,9 @@ def test_white_balance_ignores_a_bright_coloured_sample(sample_capture, true_cam
     tenth of the image, away from the markers, with a clipped core: detection white-balances on the holder's
     white patch and finds the same corners; balancing on the brightest pixels (the
     fallback) takes the yellow as white and loses the markers."""
-    from glossrig.core import marker_detect as MD
-    from glossrig.core.demosaic import demosaic
-    from glossrig.core.raw import linearize, read_raw
+    from glossrig.core.calibration import marker_detect as MD
+    from glossrig.core.calibration.demosaic import demosaic
+    from glossrig.core.calibration.raw import linearize, read_raw
     from glossrig.core.rig import load_rig
 
     rig = load_rig(RIG)

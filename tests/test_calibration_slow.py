@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from glossrig.core.intrinsics import CameraCalibration, calibrate_intrinsics, save_camera
-from glossrig.core.poses import calibrate_capture, rotation_angle_deg
+from glossrig.core.calibration.intrinsics import CameraCalibration, calibrate_intrinsics, save_camera
+from glossrig.core.calibration.poses import calibrate_capture, rotation_angle_deg
 
 from conftest import RIG
 

@@ -9,7 +9,7 @@ import json
 import pytest
 
 from glossrig.core.capture import TRUTH, load_manifest
-from glossrig.core.raw import read_raw
+from glossrig.core.calibration.raw import read_raw
 from glossrig.core.rig import REPO_ROOT
 from glossrig.hardware.backends import make_backends
 from glossrig.hardware.orchestrator import run_capture

@@ -1,4 +1,4 @@
-"""BRDF-space coverage (glossrig.core.coverage, thesis 7.1.3)."""
+"""BRDF-space coverage (glossrig.core.design.coverage, thesis 7.1.3)."""
 from __future__ import annotations
 
 import json
@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from glossrig.core import coverage as cov
-from glossrig.core.cylinder import sample_angles, surface_samples
+from glossrig.core.design import coverage as cov
+from glossrig.core.extraction.cylinder import sample_angles, surface_samples
 from glossrig.core.errors import InputError
 
 SCALE = 0.06
@@ -37,8 +37,8 @@ def test_roi_keeps_every_pixel_on_the_sample(rig):
 @pytest.mark.parametrize("rotation", [0.0, 45.0, -30.5, 90.0])
 def test_angles_match_the_pipeline_geometry(rig, pixels, rotation):
     """Zenith/azimuth (and the rotation applied to azimuths, eq. 4.62) agree with
-    glossrig.core.cylinder.sample_angles, which rotates the tangent frame."""
-    from glossrig.core.cylinder import SurfaceSamples
+    glossrig.core.extraction.cylinder.sample_angles, which rotates the tangent frame."""
+    from glossrig.core.extraction.cylinder import SurfaceSamples
 
     s = SurfaceSamples(u=pixels.u, v=pixels.v, points=pixels.points, normals=pixels.normals,
                        camera_centre=pixels.camera_centre, axis=pixels.axis)

@@ -1,5 +1,5 @@
-"""Rig design: Fisher-information errors (glossrig.core.fisher), mounting limits,
-the design sweep and selection (glossrig.core.design), and the design CLI."""
+"""Rig design: Fisher-information errors (glossrig.core.design.fisher), mounting limits,
+the design sweep and selection (glossrig.core.design.placement), and the design CLI."""
 from __future__ import annotations
 
 import json
@@ -8,12 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from glossrig.core import coverage as cov
-from glossrig.core import design as D
-from glossrig.core import fisher as fi
+from glossrig.core.design import coverage as cov
+from glossrig.core.design import placement as D
+from glossrig.core.design import fisher as fi
 from glossrig.core.errors import InputError
 from glossrig.core.rig import load_rig
-from glossrig.core.ward import WardParams, ward_from_angles
+from glossrig.core.models.ward import WardParams, ward_from_angles
 
 BRUSHED = WardParams(rho_d=0.173, rho_s=0.045, alpha_x=0.0354, alpha_y=0.0106, lobe_rotation=2.19)
 BROAD = WardParams(rho_d=0.05, rho_s=0.3, alpha_x=0.25, alpha_y=0.12, lobe_rotation=0.4)
@@ -346,8 +346,8 @@ def test_sequence_gain_nuisance_equals_the_correlated_covariance_and_does_not_av
     """gain_marginal_information is J^T (diag(sigma^2) + g^2 f f^T)^-1 J (Woodbury), and
     with it rho_d's relative error of a sequence levels off at the gain error instead of
     falling as 1/sqrt(pixels)."""
-    from glossrig.core import fisher as fi
-    from glossrig.core.ward import WardParams
+    from glossrig.core.design import fisher as fi
+    from glossrig.core.models.ward import WardParams
 
     rng = np.random.default_rng(4)
     p = WardParams(0.05, 0.007, 0.06, 0.034, 2.47)

@@ -111,13 +111,13 @@ def synthetic_brdf(seed, effect=None, value=0.0, scale=0.125, leds=(6, 9), noise
     Lambertian reference, as thesis eq. 4.78 divides them."""
     import pandas as pd
 
-    from glossrig.core.angles import normalize
-    from glossrig.core.cylinder import sample_angles, surface_samples
+    from glossrig.core.models.angles import normalize
+    from glossrig.core.extraction.cylinder import sample_angles, surface_samples
     from glossrig.core.diagnose.data import BrdfData
-    from glossrig.core.extract import Measured, RotationGeometry
-    from glossrig.core.markers import holder_marker_corners
+    from glossrig.core.extraction.extract import Measured, RotationGeometry
+    from glossrig.core.calibration.markers import holder_marker_corners
     from glossrig.core.rig import load_rig
-    from glossrig.core.ward import WardParams, ward_from_angles
+    from glossrig.core.models.ward import WardParams, ward_from_angles
     from glossrig.twin.effects import EffectState
 
     rng = np.random.default_rng(seed)

@@ -1,6 +1,6 @@
 """DNG writing (twin) and raw reading / linearising / demosaicing (core).
 
-Covers glossrig.twin.dng.write_dng and glossrig.core.raw / core.demosaic:
+Covers glossrig.twin.dng.write_dng and glossrig.core.calibration.raw / core.demosaic:
 round trip through rawpy/LibRaw, EXIF exposure metadata, atomic and
 non-clobbering writes, corrupt files, crops, thesis eq. 4.1-4.5.
 """
@@ -16,7 +16,7 @@ import tifffile
 
 from glossrig.core.capture import sha256_file
 from glossrig.core.errors import InputError
-from glossrig.core.raw import (channel_index, demosaic, demosaic_thesis, even_crop, linearize, linearize_mosaic,
+from glossrig.core.calibration.raw import (channel_index, demosaic, demosaic_thesis, even_crop, linearize, linearize_mosaic,
                                read_exif, read_raw)
 from glossrig.twin import dng as dngmod
 from glossrig.twin.dng import write_dng

@@ -21,16 +21,16 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from glossrig.core.cylinder import nominal_samples
+from glossrig.core.extraction.cylinder import nominal_samples
 from glossrig.core.errors import InputError
-from glossrig.core.export import mitsuba_material, read_fit_json, read_fit_provenance, write_fit_json
-from glossrig.core.fit import _residual_stats, fit_samples, peak_weight
-from glossrig.core.material_export import (BRDF_FILE, MATERIAL_XML, SAMPLES_CSV, SAMPLES_CSV_SIDECAR, STOCK_JSON,
+from glossrig.core.fitting.export import mitsuba_material, read_fit_json, read_fit_provenance, write_fit_json
+from glossrig.core.fitting.fit import _residual_stats, fit_samples, peak_weight
+from glossrig.core.fitting.material_export import (BRDF_FILE, MATERIAL_XML, SAMPLES_CSV, SAMPLES_CSV_SIDECAR, STOCK_JSON,
                                            STOCK_PLUGINS, STOCK_XML, read_samples_csv, write_exports)
 from glossrig.core.rig import default_rig_path, load_rig
 from glossrig.core.samples import read_samples, ward_samples, write_samples
-from glossrig.core.stock_bsdf import StockParams, directions, fit_stock, stock_brdf
-from glossrig.core.ward import WardParams, ward_from_angles, ward_local
+from glossrig.core.models.stock_bsdf import StockParams, directions, fit_stock, stock_brdf
+from glossrig.core.models.ward import WardParams, ward_from_angles, ward_local
 
 ROOT = Path(__file__).resolve().parent.parent
 TRUTH = WardParams(rho_d=0.3, rho_s=0.08, alpha_x=0.12, alpha_y=0.05, lobe_rotation=0.6)

@@ -1,4 +1,4 @@
-"""Exposure planning (issue 8): glossrig.core.exposure_plan, the [led_exposures_s] plan
+"""Exposure planning (issue 8): glossrig.core.radiometry.exposure_plan, the [led_exposures_s] plan
 table and `glossrig design exposures`."""
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from glossrig.core.errors import InputError
-from glossrig.core.exposure_plan import plan_exposures, plan_led, rate_bins
-from glossrig.core.fisher import HdrNoise
-from glossrig.core.materials import parse_material
+from glossrig.core.radiometry.exposure_plan import plan_exposures, plan_led, rate_bins
+from glossrig.core.design.fisher import HdrNoise
+from glossrig.core.models.materials import parse_material
 from glossrig.core.rig import load_rig
 from glossrig.hardware.plan import THESIS_OVERHEAD_S, THESIS_SEQUENCE_S, load_plan
 
@@ -148,8 +148,8 @@ def _jittered_stack(rates_e, times, noise, gains):
 def test_neighbour_links_predict_the_pipelines_correction(noise, times):
     """Which frames hdr.neighbour_correct ties to the reference, predicted from the rates
     alone: the same frames as the pipeline finds on the (noise-free, jittered) images."""
-    from glossrig.core import hdr
-    from glossrig.core.exposure_plan import neighbour_links
+    from glossrig.core.radiometry import hdr
+    from glossrig.core.radiometry.exposure_plan import neighbour_links
 
     rates = rates_log_uniform(100.0, 2e6, n=60 * 60, seed=5).reshape(60, 60)
     gains = 1 + 0.005 * np.random.default_rng(1).standard_normal(len(times))
@@ -165,8 +165,8 @@ def test_gain_error_matches_monte_carlo_of_the_pipeline(noise):
     """The predicted frame-gain error of each pixel's HDR value (gain_relative) against
     the pipeline (neighbour_correct + hdr_ml, then divided by the reference frame's gain,
     as patch normalisation does) over 300 jitter draws, noise-free sensor."""
-    from glossrig.core import hdr
-    from glossrig.core.exposure_plan import gain_relative, neighbour_links
+    from glossrig.core.radiometry import hdr
+    from glossrig.core.radiometry.exposure_plan import gain_relative, neighbour_links
 
     times = (0.004, 0.125, 2.0, 15.0)                       # 30x and 16x apart: frames 0 and 1 cannot link
     rates = rates_log_uniform(300.0, 1e5, n=80 * 80, seed=7).reshape(80, 80)

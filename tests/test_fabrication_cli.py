@@ -98,7 +98,7 @@ def test_model_applies_the_etn_before_halftoning(tmp_path, capsys):
     assert s["etn"]["gamma"] == gamma
 
 
-# the offset form as the project's reproduction model (core/reproduction.py) writes it
+# the offset form as the project's reproduction model (core/reproduction/model.py) writes it
 REPRODUCTION_ETN_FORM = "nominal_b2 = min(1, max(0, gamma[0] / (gamma[2] + exp(-gamma[1] * effective_b2)) + gamma[3]))"
 
 

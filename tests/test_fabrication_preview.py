@@ -21,7 +21,7 @@ from glossrig.core.fabrication import load_machine, plan
 from glossrig.core.fabrication.appearance import (GlossModel, Lighting, load_gloss_model, printed_coverage,
                                                    render_print)
 from glossrig.core.fabrication.halftone import halftone
-from glossrig.core.ward import WardParams
+from glossrig.core.models.ward import WardParams
 
 SCREEN = load_machine().screen
 

@@ -14,14 +14,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from glossrig.core.cylinder import nominal_samples
+from glossrig.core.extraction.cylinder import nominal_samples
 from glossrig.core.errors import InputError
-from glossrig.core.fit import (ALPHA_MIN, PARAM_NAMES, _internal, _make_data, _model, canonical, fit_samples,
+from glossrig.core.fitting.fit import (ALPHA_MIN, PARAM_NAMES, _internal, _make_data, _model, canonical, fit_samples,
                                fit_ward, peak_weight)
-from glossrig.core.materials import parse_material
+from glossrig.core.models.materials import parse_material
 from glossrig.core.rig import default_rig_path, load_rig
 from glossrig.core.samples import LUMINANCE_WEIGHTS, ward_samples
-from glossrig.core.ward import ALPHA_MAX, WardParams, ward_from_angles
+from glossrig.core.models.ward import ALPHA_MAX, WardParams, ward_from_angles
 
 TABLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "thesis" / "ward_params.csv"
 ROTATIONS = (-45, 0, 45, 90)
@@ -328,7 +328,7 @@ def test_bad_fit_input():
 
 
 def test_sandwich_marks_undetermined_parameters_and_keeps_the_others():
-    from glossrig.core.fit import _sandwich
+    from glossrig.core.fitting.fit import _sandwich
 
     rng = np.random.default_rng(0)
     n = 2000

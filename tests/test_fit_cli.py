@@ -9,11 +9,11 @@ import pandas as pd
 import pytest
 
 from glossrig.cli.main import main
-from glossrig.core.cylinder import nominal_samples
-from glossrig.core.fit import PARAM_NAMES
+from glossrig.core.extraction.cylinder import nominal_samples
+from glossrig.core.fitting.fit import PARAM_NAMES
 from glossrig.core.rig import default_rig_path, load_rig
 from glossrig.core.samples import write_samples, ward_samples
-from glossrig.core.ward import WardParams
+from glossrig.core.models.ward import WardParams
 
 TRUTH = WardParams(0.0518, 0.0069, 0.0595, 0.034, 2.47)     # thesis Table 9.1, sample 2/6
 
@@ -71,7 +71,7 @@ def test_exported_material_loads_and_renders_through_the_twin(samples_path, tmp_
     pytest.importorskip("glossrig.twin.ward_bsdf")
     from PIL import Image
 
-    from glossrig.core.export import mitsuba_from_params
+    from glossrig.core.fitting.export import mitsuba_from_params
     from glossrig.twin.material_renders import render_preview
     from glossrig.twin.mitsuba_env import mitsuba
 

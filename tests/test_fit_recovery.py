@@ -1,5 +1,5 @@
 """The recovery study's comparison (validation/recovery_study.py) and footprint model
-(glossrig.core.footprint): canonical truth, the data-driven resolvability
+(glossrig.core.models.footprint): canonical truth, the data-driven resolvability
 criterion, and the footprint average of a sample."""
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from glossrig.core.fit import canonical, fit_ward, parameter_errors
-from glossrig.core.ward import WardParams, ward_from_angles
+from glossrig.core.fitting.fit import canonical, fit_ward, parameter_errors
+from glossrig.core.models.ward import WardParams, ward_from_angles
 
 from test_fit import geometry, material, noisy
 
@@ -27,7 +27,7 @@ def _load(name):
 
 
 study = _load("recovery_study")
-from glossrig.core import footprint  # noqa: E402
+from glossrig.core.models import footprint  # noqa: E402
 
 
 def _fit_dict(p: WardParams, residual: float = 0.003, rot_se: float = 1e-3) -> dict:

@@ -1,4 +1,4 @@
-"""Gloss units (ISO 2813 / ASTM D523), haze and DOI (ASTM E430) from a BRDF: core/gloss.py.
+"""Gloss units (ISO 2813 / ASTM D523), haze and DOI (ASTM E430) from a BRDF: core/models/gloss.py.
 
 Every expected value is derived here independently of the module: Fresnel's equations
 in their angle form, the solid angle of a small rectangular aperture, the narrow-lobe
@@ -13,9 +13,9 @@ import time
 import numpy as np
 import pytest
 
-from glossrig.core import gloss as G
+from glossrig.core.models import gloss as G
 from glossrig.core.errors import InputError
-from glossrig.core.ward import WardParams
+from glossrig.core.models.ward import WardParams
 
 ANGLES = {"gu20": 20.0, "gu60": 60.0, "gu85": 85.0}
 
@@ -172,7 +172,7 @@ def test_bad_input():
 
 
 def test_rig_theta_d_range_constants():
-    from glossrig.core.cylinder import nominal_samples
+    from glossrig.core.extraction.cylinder import nominal_samples
     from glossrig.core.rig import default_rig_path, load_rig
 
     rig = load_rig(default_rig_path())
@@ -183,9 +183,9 @@ def test_rig_theta_d_range_constants():
 
 
 def test_fit_json_has_the_gloss_keys(tmp_path):
-    from glossrig.core.cylinder import nominal_samples
-    from glossrig.core.export import write_fit_json
-    from glossrig.core.fit import fit_samples
+    from glossrig.core.extraction.cylinder import nominal_samples
+    from glossrig.core.fitting.export import write_fit_json
+    from glossrig.core.fitting.fit import fit_samples
     from glossrig.core.rig import default_rig_path, load_rig
     from glossrig.core.samples import ward_samples
 

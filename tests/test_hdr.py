@@ -1,4 +1,4 @@
-"""Radiometric calibration (glossrig.core.hdr, glossrig.core.patch; thesis 4.3.3):
+"""Radiometric calibration (glossrig.core.radiometry.hdr, glossrig.core.radiometry.patch; thesis 4.3.3):
 repeat combination, neighbour correction (and the sign error of eq. 4.36), the
 thesis regression against the inverse-variance HDR estimator, patch
 normalisation, input validation. Synthetic sequences come from the twin's sensor
@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from glossrig.core.demosaic import channel_index
+from glossrig.core.calibration.demosaic import channel_index
 from glossrig.core.errors import InputError
-from glossrig.core.hdr import (TOO_BRIGHT, TOO_DARK, TOO_FEW, VALID, NoiseModel, combine_repeats, hdr_from_stack,
+from glossrig.core.radiometry.hdr import (TOO_BRIGHT, TOO_DARK, TOO_FEW, VALID, NoiseModel, combine_repeats, hdr_from_stack,
                                hdr_ml, hdr_thesis, neighbour_correct, stack_frames)
-from glossrig.core.patch import normalise_by_patch
-from glossrig.core.raw import RawFrame, linearize_mosaic
+from glossrig.core.radiometry.patch import normalise_by_patch
+from glossrig.core.calibration.raw import RawFrame, linearize_mosaic
 from glossrig.twin.sensor import SensorModel, frame_rng
 
 

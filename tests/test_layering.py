@@ -58,7 +58,7 @@ def test_the_checker_sees_a_violation(tmp_path, monkeypatch):
     """The rule would catch a function-level and a relative import of the twin."""
     fake = tmp_path / "core"
     (fake / "sub").mkdir(parents=True)
-    (fake / "ok.py").write_text("from glossrig.core.ward import ward\n")
+    (fake / "ok.py").write_text("from glossrig.core.models.ward import ward\n")
     (fake / "sub" / "bad.py").write_text("def f():\n    from ...twin import dng\n    import glossrig.hardware.lights\n")
     monkeypatch.setattr(__import__(__name__), "ROOT", tmp_path)
     found = _violations("core")

@@ -12,10 +12,10 @@ import sys
 import numpy as np
 import pytest
 
-from glossrig.core.angles import brdf_angles, local_direction
+from glossrig.core.models.angles import brdf_angles, local_direction
 from glossrig.core.diagnose.material_models import (LOBES, angle_arrays, fit_lobe, fresnel_profile, ggx_lobe,
                                                     ggx_ndf, renormalise, schlick_ratio)
-from glossrig.core.ward import WardParams, ward_from_angles
+from glossrig.core.models.ward import WardParams, ward_from_angles
 
 from conftest import RIG
 
@@ -171,7 +171,7 @@ def _brdf_model(kind, seed, ref_shape=None):
     data = BrdfData(t, None, 0.8, (100, 100), (50.0, 50.0), {}, {})
     if ref_shape is not None:
         data.reference_brdf = lambda tab: np.repeat((0.8 / np.pi * ref_shape(tab))[:, None], 3, axis=1)
-    from glossrig.core.fit import fit_samples
+    from glossrig.core.fitting.fit import fit_samples
 
     return BrdfModel.build(data, fit_samples(t, channels=["luminance"]).fits["luminance"].params)
 

@@ -83,7 +83,7 @@ def test_measure_writes_everything_and_redoes_exactly_what_changed(tiny_captures
         assert (out / "exports" / f).is_file() and (out / "exports" / f).stat().st_size > 0, f
     assert (out / "renders" / "render_sphere.png").is_file() and (out / "renders" / "render_cloth.png").is_file()
     fit = json.loads((out / "fit.json").read_text())
-    gloss = fit["luminance"]["gloss"]              # glossrig.core.gloss of the luminance fit (issue 17)
+    gloss = fit["luminance"]["gloss"]              # glossrig.core.models.gloss of the luminance fit (issue 17)
     assert {"gu20", "gu60", "gu85", "haze", "doi"} <= set(gloss)
     assert all(math.isfinite(gloss[k]) and gloss[k] >= 0 for k in ("gu20", "gu60", "gu85"))
     # the recovery table: camera and lamps are the truth, so their errors are exactly 0

@@ -21,7 +21,7 @@ from glossrig.core.errors import InputError
     ("lobe_rotation=east", r"lobe_rotation='east' is not an angle"),
 ])
 def test_material_specs_out_of_range_are_refused(spec, msg):
-    from glossrig.core.materials import parse_material
+    from glossrig.core.models.materials import parse_material
 
     base = dict(rho_d="0.05", rho_s="0.02", alpha_x="0.1", alpha_y="0.05")
     for part in spec.split(","):
@@ -32,7 +32,7 @@ def test_material_specs_out_of_range_are_refused(spec, msg):
 
 
 def test_lobe_rotation_takes_an_explicit_unit():
-    from glossrig.core.materials import parse_material
+    from glossrig.core.models.materials import parse_material
 
     w = "ward:rho_d=0.05,rho_s=0.02,alpha_x=0.1,alpha_y=0.05,lobe_rotation="
     assert parse_material(w + "140deg").ward.lobe_rotation == pytest.approx(math.radians(140))
@@ -42,8 +42,7 @@ def test_lobe_rotation_takes_an_explicit_unit():
 
 
 def test_material_file_out_of_range_names_the_file(tmp_path, monkeypatch):
-    from glossrig.core import materials
-
+    from glossrig.core.models import materials
     (tmp_path / "degrees.toml").write_text('type = "ward"\nrho_d = 0.05\nrho_s = 0.01\nalpha_x = 0.1\n'
                                            'alpha_y = 0.05\nlobe_rotation = 141.0\n')
     (tmp_path / "unit.toml").write_text('type = "ward"\nrho_d = 0.05\nrho_s = 0.01\nalpha_x = 0.1\n'
@@ -55,7 +54,7 @@ def test_material_file_out_of_range_names_the_file(tmp_path, monkeypatch):
 
 
 def test_every_shipped_material_is_in_range():
-    from glossrig.core.materials import material_names, parse_material
+    from glossrig.core.models.materials import material_names, parse_material
 
     assert len(material_names()) > 5
     for name in material_names():
@@ -83,7 +82,7 @@ RIG = ROOT / "scenes" / "thesis_rig.toml"
 def test_white_patch_check_flags_a_saturating_plan_and_passes_the_shipped_example(rig):
     """The README's twin_small plan used to expose 0.5 and 1.0 s: the white patch saturates
     at both under LED 10 (and at 0.5 s under LED 6), and extract refused the capture."""
-    from glossrig.core.exposure_plan import white_patch_exposures, white_patch_warnings
+    from glossrig.core.radiometry.exposure_plan import white_patch_exposures, white_patch_warnings
     from glossrig.hardware.plan import load_plan
 
     old = {6: [0.5, 1.0], 10: [0.5, 1.0]}
@@ -143,7 +142,7 @@ def test_twin_capture_never_renders_another_material_than_the_plan_says(tmp_path
 
 def test_twin_plan_with_a_free_text_or_agreeing_label_is_accepted(tmp_path):
     from glossrig.hardware.backends_twin import _check_sample_label
-    from glossrig.core.materials import parse_material
+    from glossrig.core.models.materials import parse_material
     from glossrig.hardware.plan import load_plan
 
     for sample in ("white paper, batch 3", "lambert:0.80", "lambert:0.8"):

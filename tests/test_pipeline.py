@@ -69,7 +69,7 @@ def extracted(rigdata):
 
 def test_extracted_brdf_matches_truth(rigdata, extracted):
     from glossrig.core.samples import COLUMNS, read_samples
-    from glossrig.core.ward import WardParams, ward_from_angles
+    from glossrig.core.models.ward import WardParams, ward_from_angles
 
     df = read_samples(extracted)
     assert list(df.columns[:len(COLUMNS)]) == list(COLUMNS) or set(COLUMNS) <= set(df.columns)
@@ -169,7 +169,7 @@ def test_checkerboard_or_diffuse_capture_given_for_a_sample_stops_early(rigdata,
 
 
 def test_reference_from_another_rig_or_rotation_set(rigdata, tmp_path):
-    from glossrig.core.extract import check_compatible
+    from glossrig.core.extraction.extract import check_compatible
 
     other = tmp_path / "ref_other_rig"
     shutil.copytree(rigdata / "reference", other)

@@ -13,11 +13,11 @@ import pytest
 
 from glossrig.cli.main import main
 from glossrig.core import provenance as P
-from glossrig.core.cylinder import nominal_samples
+from glossrig.core.extraction.cylinder import nominal_samples
 from glossrig.core.errors import InputError
 from glossrig.core.rig import default_rig_path, load_rig
 from glossrig.core.samples import read_provenance, read_samples, ward_samples, write_samples
-from glossrig.core.ward import WardParams
+from glossrig.core.models.ward import WardParams
 
 
 def sha(p) -> str:

@@ -1,8 +1,8 @@
-"""The measurement report (issue 17): glossrig.core.report, glossrig.core.report_figures and
+"""The measurement report (issue 17): glossrig.core.report.document, glossrig.core.report.figures and
 the twin's material renders.
 
 Inputs are small and synthetic: a samples table of a known extended-Ward material at the
-rig's nominal geometry (no rendering), fitted by glossrig.core.fit; a fake capture of
+rig's nominal geometry (no rendering), fitted by glossrig.core.fitting.fit; a fake capture of
 two LEDs x four exposures of 64 x 48 px DNGs whose HDR rate is known exactly. The
 report is checked as written (every embedded image a decodable, non-constant PNG; the
 Markdown's PNGs exist), its figures' axes with matplotlib, and the HTML in a real
@@ -78,13 +78,13 @@ def write_fake_capture(folder: Path, *, truth: bool = True) -> Path:
 @pytest.fixture(scope="module")
 def measured(tmp_path_factory):
     """samples.parquet (with provenance) and fit.json of a known Ward material; a fake capture."""
-    from glossrig.core.cylinder import nominal_samples
-    from glossrig.core.export import write_fit_json
-    from glossrig.core.fit import fit_samples
+    from glossrig.core.extraction.cylinder import nominal_samples
+    from glossrig.core.fitting.export import write_fit_json
+    from glossrig.core.fitting.fit import fit_samples
     from glossrig.core.provenance import provenance
     from glossrig.core.rig import load_rig
     from glossrig.core.samples import read_samples, ward_samples, write_samples
-    from glossrig.core.ward import WardParams
+    from glossrig.core.models.ward import WardParams
 
     d = tmp_path_factory.mktemp("report")
     cap = write_fake_capture(d / "sample")
@@ -102,7 +102,7 @@ def measured(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def report(measured):
-    from glossrig.core.report import write_report
+    from glossrig.core.report.document import write_report
 
     d = measured["dir"]
     rng = np.random.default_rng(0)
@@ -190,7 +190,7 @@ def test_fit_table_holds_the_fitted_values(report, measured):
 
 
 def test_gloss_and_missing_inputs(measured, tmp_path):
-    from glossrig.core.report import write_report
+    from glossrig.core.report.document import write_report
 
     html, md = write_report(tmp_path / "r", fit_json=json.loads(measured["fit"].read_text()), samples=measured["df"],
                             gloss={"gu20": 12.5, "gu60": {"value": 40.0, "extrapolated": True}}, hdr=False)
@@ -214,7 +214,7 @@ def test_gloss_and_missing_inputs(measured, tmp_path):
 # ------------------------------------------------------------------ figures
 
 def test_hdr_per_led_recovers_the_encoded_rate(measured):
-    from glossrig.core.report_figures import hdr_per_led
+    from glossrig.core.report.figures import hdr_per_led
 
     hdrs = hdr_per_led(measured["capture"])
     assert [h.led for h in hdrs] == list(LEDS)
@@ -236,7 +236,7 @@ def test_hdr_per_led_recovers_the_encoded_rate(measured):
 
 
 def test_hdr_of_a_decimated_capture_is_the_hdr_of_the_kept_blocks(measured):
-    from glossrig.core.report_figures import hdr_per_led
+    from glossrig.core.report.figures import hdr_per_led
 
     full = hdr_per_led(measured["capture"], leds=[LEDS[0]])[0]
     dec = hdr_per_led(measured["capture"], leds=[LEDS[0]], max_width=32)[0]     # 64 px wide: every 2nd block
@@ -249,8 +249,8 @@ def test_hdr_of_a_decimated_capture_is_the_hdr_of_the_kept_blocks(measured):
 def test_in_plane_geometry_against_hand_values():
     import pandas as pd
 
-    from glossrig.core.report_figures import model_in_plane, signed_in_plane
-    from glossrig.core.ward import WardParams
+    from glossrig.core.report.figures import model_in_plane, signed_in_plane
+    from glossrig.core.models.ward import WardParams
 
     t = np.radians
     df = pd.DataFrame({"theta_out": t([30.0, 30.0, 30.0]), "phi_in": t([10.0, 10.0, 10.0]),
@@ -302,9 +302,10 @@ def _check_figure(fig, name):
 
 
 def test_figures_have_labelled_axes_and_no_overlapping_ticks(measured, tmp_path, monkeypatch):
-    from glossrig.core import fit_plots, report_figures
-    from glossrig.core.export import fit_from_doc
-    from glossrig.core.ward import WardParams
+    from glossrig.core.fitting import fit_plots
+    from glossrig.core.report import figures as report_figures
+    from glossrig.core.fitting.export import fit_from_doc
+    from glossrig.core.models.ward import WardParams
 
     captured = {}
     plt = report_figures._plt()
@@ -386,8 +387,8 @@ def test_report_renders_in_headless_chromium(report, tmp_path):
 @pytest.mark.mitsuba
 def test_sphere_and_cloth_renders_show_the_material(tmp_path):
     pytest.importorskip("mitsuba")
-    from glossrig.core.export import mitsuba_from_params
-    from glossrig.core.ward import WardParams
+    from glossrig.core.fitting.export import mitsuba_from_params
+    from glossrig.core.models.ward import WardParams
     from glossrig.twin.material_renders import environment_map, render_material_views
 
     env = environment_map(64)

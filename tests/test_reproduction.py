@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from glossrig.core import reproduction as R
-from glossrig.core.angles import brdf_angles, local_direction
+from glossrig.core.reproduction import model as R
+from glossrig.core.models.angles import brdf_angles, local_direction
 from glossrig.core.errors import InputError
-from glossrig.core.ward import WardParams, ward_from_angles
+from glossrig.core.models.ward import WardParams, ward_from_angles
 
 ROOT = Path(__file__).resolve().parent.parent
 THESIS = ROOT.parent / "shared" / "data" / "thesis"
@@ -27,7 +27,7 @@ BASE2 = WardParams(0.055, 0.026, 0.25, 0.029, 2.57)
 
 @pytest.fixture(scope="module")
 def local_angles() -> R.AngleSet:
-    """A small hand-made angle set (core/angles.py): incident directions on a
+    """A small hand-made angle set (core/models/angles.py): incident directions on a
     zenith x azimuth grid, outgoing ones at and around the mirror direction, so
     both the specular peak and the flanks are sampled."""
     rows = []

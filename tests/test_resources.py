@@ -12,7 +12,7 @@ from conftest import ROOT
 from glossrig.cli.main import main
 from glossrig.core.errors import InputError
 from glossrig.core.fabrication.machine import load_machine
-from glossrig.core.materials import material_names, parse_material
+from glossrig.core.models.materials import material_names, parse_material
 from glossrig.core.resources import packaged_reference, resolve_input, scenes_dir
 from glossrig.core.rig import load_rig
 from glossrig.hardware.plan import load_plan

@@ -211,7 +211,7 @@ def _inputs(d):
 
 @pytest.mark.mitsuba
 def test_extract_resumes_an_interrupted_run_and_equals_an_uninterrupted_one(caps, tmp_path, monkeypatch, capsys):
-    import glossrig.core.extract as ex
+    import glossrig.core.extraction.extract as ex
 
     full, part = tmp_path / "full.parquet", tmp_path / "part.parquet"
     assert main(["extract", *map(str, _inputs(caps)), "--out", str(full), "--no-progress"]) == 0

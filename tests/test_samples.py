@@ -10,7 +10,7 @@ import pytest
 
 from glossrig.core.errors import InputError
 from glossrig.core.samples import COLUMNS, luminance, read_samples, validate_samples, ward_samples, write_samples
-from glossrig.core.ward import WardParams, ward_from_angles
+from glossrig.core.models.ward import WardParams, ward_from_angles
 
 
 def table(n=50, seed=0) -> pd.DataFrame:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from glossrig.core.errors import InputError
-from glossrig.core.raw import channel_index, linearize, read_raw
+from glossrig.core.calibration.raw import channel_index, linearize, read_raw
 from glossrig.core.rig import default_rig_path, load_rig
 from glossrig.twin.dng import write_dng
 from glossrig.twin.sensor import SensorModel, frame_rng

@@ -12,11 +12,11 @@ import pytest
 import rawpy
 
 from glossrig.core.capture import load_manifest
-from glossrig.core.cylinder import sample_angles, surface_samples
-from glossrig.core.markers import cylinder_marker_corners, holder_marker_corners
-from glossrig.core.materials import parse_material
-from glossrig.core.raw import demosaic, linearize, read_raw
-from glossrig.core.ward import ward_from_angles
+from glossrig.core.extraction.cylinder import sample_angles, surface_samples
+from glossrig.core.calibration.markers import cylinder_marker_corners, holder_marker_corners
+from glossrig.core.models.materials import parse_material
+from glossrig.core.calibration.raw import demosaic, linearize, read_raw
+from glossrig.core.models.ward import ward_from_angles
 
 from conftest import RIG
 

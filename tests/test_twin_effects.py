@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from glossrig.core.errors import InputError
-from glossrig.core.materials import parse_material
+from glossrig.core.models.materials import parse_material
 from glossrig.twin.effects import CATALOGUE, EffectState, parse_effects
 
 pytestmark = pytest.mark.mitsuba

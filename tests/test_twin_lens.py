@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from glossrig.core.cylinder import undistorted_rays
-from glossrig.core.poses import edge_profile
+from glossrig.core.extraction.cylinder import undistorted_rays
+from glossrig.core.calibration.poses import edge_profile
 from glossrig.twin.render import LensMap
 
 SCALE = 0.25
@@ -133,7 +133,7 @@ def test_area_mean_is_the_exact_footprint_integral(lenses):
 
 
 def _holder_tilt_on_exact_image(rig, scale: float, ss: int) -> float:
-    from glossrig.core import poses as P
+    from glossrig.core.calibration import poses as P
     from glossrig.twin.marker_image import holder_marker_mosaic
 
     lens = LensMap.build(rig.camera, scale, supersample=ss)

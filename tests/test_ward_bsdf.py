@@ -6,7 +6,7 @@ import csv
 import numpy as np
 import pytest
 
-from glossrig.core.ward import WardParams, ward_albedo, ward_local
+from glossrig.core.models.ward import WardParams, ward_albedo, ward_local
 
 from conftest import SHARED
 

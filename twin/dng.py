@@ -3,7 +3,7 @@
 The capture contract (design.md) has the twin write raw files in the format a
 real camera could: a DNG (Adobe DNG Specification 1.4) holding the uncompressed
 16-bit CFA mosaic, read by the pipeline through rawpy/LibRaw exactly as a real
-camera's DNG or NEF would be (:func:`glossrig.core.raw.read_raw`).
+camera's DNG or NEF would be (:func:`glossrig.core.calibration.raw.read_raw`).
 
 Layout: one IFD0 holding the raw image (NewSubFileType 0, Photometric CFA
 32803, CFARepeatPatternDim / CFAPattern, BlackLevelRepeatDim 2x2 + one
@@ -42,7 +42,7 @@ import numpy as np
 import tifffile
 
 from glossrig.core.capture import sha256_file
-from glossrig.core.demosaic import cfa_array
+from glossrig.core.calibration.demosaic import cfa_array
 from glossrig.core.errors import InputError
 
 __all__ = ["write_dng", "XYZ_TO_SRGB", "DNG_VERSION"]

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from glossrig.core.markers import cylinder_marker_angles, cylinder_marker_radius, holder_marker_corners
+from glossrig.core.calibration.markers import cylinder_marker_angles, cylinder_marker_radius, holder_marker_corners
 
 
 def holder_box(rig, recess: float = 0.04) -> trimesh.Trimesh:

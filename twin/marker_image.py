@@ -7,7 +7,7 @@ noise-free response (or one noisy exposure) makes the raw mosaic. On the nominal
 rig the marker faces the camera squarely, so its edges are canvas rows and
 columns and a fine pixel's coverage is the product of its coverages along x and
 y - exact away from the corners, which the pose refinement leaves out
-(:func:`glossrig.core.poses.refine_pose_edges` margins). Used by
+(:func:`glossrig.core.calibration.poses.refine_pose_edges` margins). Used by
 tests/test_twin_lens.py and validation/calibration_study.py to separate the
 canvas discretisation from Monte Carlo and sensor noise.
 """
@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from glossrig.core.errors import InputError
-from glossrig.core.markers import holder_marker_corners
+from glossrig.core.calibration.markers import holder_marker_corners
 
 #: Radiances (W m^-2 sr^-1, RGB) at the holder in the twin's calibration image (scale 0.15,
 #: seed 2, all LEDs): dark holder, red frame, white patch.
@@ -55,7 +55,7 @@ def holder_marker_mosaic(rig, lens, R: np.ndarray, t: np.ndarray, rng: np.random
     """Linear raw mosaic (the calibration exposure of ``rig``) of
     :func:`holder_marker_radiance`: the sensor's noise-free response, or one noisy
     exposure drawn with ``rng``."""
-    from glossrig.core.raw import linearize_mosaic
+    from glossrig.core.calibration.raw import linearize_mosaic
     from .sensor import SensorModel
 
     S = SensorModel.from_rig(rig)

@@ -15,13 +15,13 @@
   Mitsuba 3 builds a mesh's shading frame with ``s = dp/du`` (made orthogonal to
   the interpolated normal), so the anisotropic lobe orients along the weave.
 * :func:`render_material_views` - both, as PNGs, for the report
-  (:func:`glossrig.core.report.write_report` takes them as inputs, so
+  (:func:`glossrig.core.report.document.write_report` takes them as inputs, so
   ``glossrig.core`` stays free of Mitsuba, design.md).
 * :func:`render_preview` and :func:`preview_scene` - the point-lit preview sphere
-  of ``glossrig fit --plots`` (moved here from ``glossrig.core.fit_plots``, which
+  of ``glossrig fit --plots`` (moved here from ``glossrig.core.fitting.fit_plots``, which
   must not import the twin; same names and arguments).
 
-Materials are the ``glossrig_ward`` dicts of :func:`glossrig.core.export.mitsuba_material`
+Materials are the ``glossrig_ward`` dicts of :func:`glossrig.core.fitting.export.mitsuba_material`
 (or any Mitsuba BSDF dict). Images are written as 8-bit sRGB (IEC 61966-2-1) of
 the linear radiance times ``exposure``, clipped at 1: one fixed exposure, so
 renders of different materials compare.
@@ -228,7 +228,7 @@ def render_cloth(material: dict, path, *, size: int = 512, spp: int = 128, seed:
 def render_material_views(material: dict, out_dir, *, size: int = 512, spp: int = 128, seed: int = 0,
                           exposure: float = 1.0, prefix: str = "render") -> dict[str, Path]:
     """Sphere and cloth of ``material`` into ``out_dir`` (created): ``{"sphere": PNG,
-    "cloth": PNG}``, the ``renders`` argument of :func:`glossrig.core.report.write_report`.
+    "cloth": PNG}``, the ``renders`` argument of :func:`glossrig.core.report.document.write_report`.
     ``size`` >= 512 px in real use (the issue's minimum); tests render tiny."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -265,7 +265,7 @@ def preview_scene(material: dict, to_world, size: int = 160, spp: int = 64, key:
 
 
 def render_preview(material: dict, path, *, size: int = 160, spp: int = 64, seed: int = 0) -> Path:
-    """Render a sphere of the fitted material (``glossrig.core.export`` dict)
+    """Render a sphere of the fitted material (``glossrig.core.fitting.export`` dict)
     through the twin's ``glossrig_ward`` BSDF, lit by a point light, and write an
     sRGB PNG (``glossrig fit --plots``'s ``preview_sphere.png``).
 

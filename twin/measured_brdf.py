@@ -8,7 +8,7 @@ ground truth of a study is exactly what the twin showed the rig.
 
 Conventions: ``wi`` points to the light, ``wo`` to the camera, both unit vectors
 ``(..., 3)`` in the local frame (x = tangent, y = bitangent, z = normal) of
-:mod:`glossrig.core.angles`. In the twin the plugin is queried with the camera
+:mod:`glossrig.core.models.angles`. In the twin the plugin is queried with the camera
 direction as Mitsuba's ``si.wi`` and the light as its ``wo``, and Mitsuba returns
 f * cos(theta of its wo): :meth:`MeasuredBRDF.eval` does the same and divides the
 cosine out, returning the BRDF f (1/sr) per RGB channel. Negative values, which the
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from glossrig.core.angles import local_direction
+from glossrig.core.models.angles import local_direction
 from glossrig.core.errors import InputError
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])    # Rec. 709, as the pipeline's luminance

@@ -6,7 +6,7 @@ canvas that covers every ray the real (distorted) image needs, then resample:
 for each output pixel (u, v), ``cv2.undistortPoints`` gives the ideal normalised
 ray (x, y) under the calibrated k1 k2 p1 p2 k3 model, and the pinhole canvas is
 read at ``(s fx x + c, s fx y + c')``. The pipeline undoes exactly this model
-with the same coefficients (glossrig.core.cylinder.undistorted_rays), so fy
+with the same coefficients (glossrig.core.extraction.cylinder.undistorted_rays), so fy
 enters only here.
 
 Image formation: a sensor pixel integrates the irradiance over its area, so an
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from glossrig.core.cylinder import undistorted_rays
+from glossrig.core.extraction.cylinder import undistorted_rays
 
 
 @dataclass

@@ -5,7 +5,7 @@ imports neither the twin nor the hardware layer (tests/test_layering.py).
 
 Used by the tests and the blind study so that finding these effects does not
 lean on the twin's own implementation: each DNG of the capture is decoded with
-:func:`glossrig.core.raw.read_raw`, its mosaic changed, and written back with
+:func:`glossrig.core.calibration.raw.read_raw`, its mosaic changed, and written back with
 :func:`glossrig.twin.dng.write_dng` (same CFA, levels, exposure metadata); the
 manifest's checksums are updated. The stated black level is left unchanged.
 
@@ -29,7 +29,7 @@ CFA_NAMES = {0: "R", 1: "G", 2: "B"}
 
 
 def rewrite_capture(src, dst, effect: str, value: float) -> Path:
-    from glossrig.core.raw import read_raw
+    from glossrig.core.calibration.raw import read_raw
     from .dng import write_dng
 
     if effect not in REWRITABLE:

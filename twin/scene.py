@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from glossrig.core.markers import cylinder_marker_radius
-from glossrig.core.materials import Material
+from glossrig.core.calibration.markers import cylinder_marker_radius
+from glossrig.core.models.materials import Material
 
 from . import geometry
 from .mitsuba_env import mitsuba

@@ -59,7 +59,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from glossrig.core.demosaic import cfa_array, cfa_string
+from glossrig.core.calibration.demosaic import cfa_array, cfa_string
 from glossrig.core.errors import InputError
 
 from .dng import XYZ_TO_SRGB

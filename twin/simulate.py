@@ -33,7 +33,7 @@ from tqdm import tqdm
 from glossrig.core.capture import (TRUTH, ImageEntry, Manifest, atomic_write_json, check_rotation_tags, image_stem,
                                    load_manifest, rotation_tag, sha256_file)
 from glossrig.core.errors import InputError
-from glossrig.core.materials import parse_material
+from glossrig.core.models.materials import parse_material
 from glossrig.core.progress import progress_enabled
 from glossrig.core.rig import load_rig
 

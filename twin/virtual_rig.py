@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from glossrig.core.errors import InputError
-from glossrig.core.materials import Material
+from glossrig.core.models.materials import Material
 from glossrig.core.rig import Rig
 
 from .effects import EffectState

@@ -6,9 +6,9 @@ sample rotation of thesis 4.3.5. The tangent frame is the one of 4.3.5: Mitsuba'
 shading frame on the ``cylinder`` shape has ``s = dp/du``, which runs around the
 cylinder, i.e. ``s = axis x normal`` (eq. 4.61); the sample rotation turns it
 about the normal (eq. 4.62). The formula is glossrig's one Ward evaluation,
-:func:`glossrig.core.ward.ward_parts`, written in Dr.Jit (the lobe's slopes
+:func:`glossrig.core.models.ward.ward_parts`, written in Dr.Jit (the lobe's slopes
 ``hx / hz, hy / hz`` in the lobe's axes, the exponent capped at
-:data:`glossrig.core.ward.EXPONENT_CAP`); :func:`glossrig.core.ward.ward_local` is
+:data:`glossrig.core.models.ward.EXPONENT_CAP`); :func:`glossrig.core.models.ward.ward_local` is
 its numpy reference in the tests. The one departure: the normalisation
 ``1 / sqrt(cos th_i cos th_o)`` is guarded by ``max(., 1e-12)``, since in single
 precision the product of two grazing cosines can underflow to 0 (core's double
@@ -23,7 +23,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from glossrig.core.ward import EXPONENT_CAP
+from glossrig.core.models.ward import EXPONENT_CAP
 
 PLUGIN = "glossrig_ward"
 _registered = False

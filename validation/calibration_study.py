@@ -59,7 +59,7 @@ def simulate(out: Path, *args) -> Path:
 
 
 def rot_err(Ra, Rb) -> float:
-    from glossrig.core.poses import rotation_angle_deg
+    from glossrig.core.calibration.poses import rotation_angle_deg
 
     return rotation_angle_deg(np.asarray(Ra), np.asarray(Rb))
 
@@ -73,7 +73,7 @@ def tilt_axes_deg(R_est, R_true) -> list[float]:
 
 def intrinsics_part(work: Path, scale: float, runs: list[tuple[int, int]]) -> list[dict]:
     """``runs``: (seed, views) pairs."""
-    from glossrig.core.intrinsics import load_camera
+    from glossrig.core.calibration.intrinsics import load_camera
 
     rows = []
     for s, views in runs:
@@ -104,7 +104,7 @@ def pose_errors(res: dict, t: dict) -> dict:
     out = {}
     for tag, h, c in (("corner_pnp", res["holder"]["corner_pnp"], res["cylinder"]["corner_pnp"]),
                       ("edge_refined", res["holder"], res["cylinder"])):
-        from glossrig.core.poses import relative_to_holder
+        from glossrig.core.calibration.poses import relative_to_holder
 
         Rr, tr = relative_to_holder(h["R"], h["t_mm"], c["R"], c["t_mm"])
         out[tag] = {
@@ -122,7 +122,7 @@ def pose_errors(res: dict, t: dict) -> dict:
 
 
 def true_camera(capture: Path, work: Path) -> Path:
-    from glossrig.core.intrinsics import CameraCalibration, save_camera
+    from glossrig.core.calibration.intrinsics import CameraCalibration, save_camera
 
     t = json.loads((capture / "truth.json").read_text())
     K = np.array(t["camera_matrix"])
@@ -135,7 +135,7 @@ def true_camera(capture: Path, work: Path) -> Path:
 
 
 def poses_part(work: Path, scale: float, seeds: list[int], calibrated_camera: Path) -> list[dict]:
-    from glossrig.core.poses import calibrate_capture
+    from glossrig.core.calibration.poses import calibrate_capture
 
     rows = []
     for s in seeds:
@@ -160,7 +160,7 @@ def poses_part(work: Path, scale: float, seeds: list[int], calibrated_camera: Pa
 def sensitivity(rig, t: dict) -> dict:
     """Largest image displacement of the holder-marker corners (outer, inner) when
     the holder turns by 0.05 deg about its x or y axis through the marker centre."""
-    from glossrig.core.markers import holder_marker_corners
+    from glossrig.core.calibration.markers import holder_marker_corners
 
     R, tt = np.array(t["camera_R_holder_to_camera"]), np.array(t["camera_t_mm"])
     K, d = np.array(t["camera_matrix"]), np.array(t["distortion"])
@@ -184,10 +184,10 @@ def edge_offsets_at_truth(capture: Path, rig) -> dict:
     held at the truth: how far the twin's image departs from the model."""
     from scipy.optimize import least_squares
 
-    from glossrig.core import poses as P
-    from glossrig.core.demosaic import channel_index
-    from glossrig.core.marker_detect import _distort
-    from glossrig.core.raw import linearize, read_raw
+    from glossrig.core.calibration import poses as P
+    from glossrig.core.calibration.demosaic import channel_index
+    from glossrig.core.calibration.marker_detect import _distort
+    from glossrig.core.calibration.raw import linearize, read_raw
 
     t = json.loads((capture / "truth.json").read_text())
     K, dist = np.array(t["camera_matrix"]), np.array(t["distortion"])
@@ -195,7 +195,7 @@ def edge_offsets_at_truth(capture: Path, rig) -> dict:
     fr = read_raw(capture / load_manifest(capture).select("calibration")[0].file)
     lin = linearize(fr)
     cid = channel_index(lin.shape, fr.cfa)
-    from glossrig.core.markers import cylinder_marker_corners, holder_marker_corners
+    from glossrig.core.calibration.markers import cylinder_marker_corners, holder_marker_corners
 
     def px(a, b):
         p = P._project_ideal(np.array([a, b]), R, tt, K)
@@ -256,8 +256,8 @@ def synthetic_holder(rig, t: dict, seed: int = 0, blur: float = 0.4, ss: int = 4
     quantises edges that run along pixel rows/columns to 1/ss px - a stand-in
     for any renderer whose pixel response depends on the sub-pixel phase (the
     twin's former single bilinear lens read was one; twin/render.py)."""
-    from glossrig.core import poses as P
-    from glossrig.core.markers import holder_marker_corners
+    from glossrig.core.calibration import poses as P
+    from glossrig.core.calibration.markers import holder_marker_corners
 
     K, dist = np.array(t["camera_matrix"]), np.array(t["distortion"])
     R, tt = np.array(t["camera_R_holder_to_camera"]), np.array(t["camera_t_mm"])
@@ -316,11 +316,11 @@ def synthetic_holder(rig, t: dict, seed: int = 0, blur: float = 0.4, ss: int = 4
 def lens_map_holder(rig, scale: float, draws: int = 6) -> dict:
     """Part 3d: holder tilt (deg) refined from the true pose on the exact marker image
     through the twin's lens map, per canvas supersampling: noise-free and per noise draw."""
-    from glossrig.core import poses as P
+    from glossrig.core.calibration import poses as P
     from glossrig.twin.marker_image import holder_marker_mosaic
     from glossrig.twin.render import LensMap
 
-    from glossrig.core.markers import holder_marker_corners
+    from glossrig.core.calibration.markers import holder_marker_corners
 
     R, t = rig.camera.pose()
     out = {}

@@ -84,15 +84,15 @@ def subset(src: Path, dst: Path, leds: list[int]) -> Path:
 # ----------------------------------------------------------------- measuring (child process)
 
 STAGES = [  # (label, module, attribute); nested ones are subtracted from their parent
-    ("geometry", "glossrig.core.extract", "rotation_geometry"),
-    ("poses", "glossrig.core.poses", "calibrate_capture"),
-    ("raw_read", "glossrig.core.raw", "read_raw"),     # via Manifest.read_raw (checksum + decode)
-    ("linearise_stack", "glossrig.core.hdr", "stack_frames"),
-    ("hdr", "glossrig.core.hdr", "hdr_from_stack"),
-    ("patch_blocks", "glossrig.core.extract", "normalise_by_patch"),
-    ("patch_blocks", "glossrig.core.extract", "block_values"),
-    ("angles", "glossrig.core.extract", "sample_angles"),
-    ("diffuse_normalise", "glossrig.core.extract", "diffuse_normalize"),
+    ("geometry", "glossrig.core.extraction.extract", "rotation_geometry"),
+    ("poses", "glossrig.core.calibration.poses", "calibrate_capture"),
+    ("raw_read", "glossrig.core.calibration.raw", "read_raw"),     # via Manifest.read_raw (checksum + decode)
+    ("linearise_stack", "glossrig.core.radiometry.hdr", "stack_frames"),
+    ("hdr", "glossrig.core.radiometry.hdr", "hdr_from_stack"),
+    ("patch_blocks", "glossrig.core.extraction.extract", "normalise_by_patch"),
+    ("patch_blocks", "glossrig.core.extraction.extract", "block_values"),
+    ("angles", "glossrig.core.extraction.extract", "sample_angles"),
+    ("diffuse_normalise", "glossrig.core.extraction.extract", "diffuse_normalize"),
     ("write_parquet", "glossrig.core.samples", "write_samples"),
 ]
 
@@ -127,8 +127,8 @@ def measure(sample: Path, reference: Path, camera: Path, out_json: Path) -> None
         m = importlib.import_module(mod)
         setattr(m, attr, wrap(label, getattr(m, attr)))
     from glossrig.core import samples
-    from glossrig.core.extract import extract_samples
-    from glossrig.core.intrinsics import load_camera
+    from glossrig.core.extraction.extract import extract_samples
+    from glossrig.core.calibration.intrinsics import load_camera
     from glossrig.core.rig import load_rig
 
     cam = load_camera(camera)

@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from glossrig.core.cylinder import nominal_samples
-from glossrig.core.fit import PARAM_NAMES, canonical, fit_samples
-from glossrig.core.materials import parse_material
+from glossrig.core.extraction.cylinder import nominal_samples
+from glossrig.core.fitting.fit import PARAM_NAMES, canonical, fit_samples
+from glossrig.core.models.materials import parse_material
 from glossrig.core.rig import default_rig_path, load_rig
 from glossrig.core.samples import ward_samples
 

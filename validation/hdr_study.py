@@ -1,5 +1,5 @@
 """HDR estimators on the twin: the thesis's regression (eq. 4.39-4.44) against the
-inverse-variance fit through the origin (glossrig.core.hdr.hdr_ml).
+inverse-variance fit through the origin (glossrig.core.radiometry.hdr.hdr_ml).
 
 For each material, one rotation and a few LEDs, the virtual rig shoots the thesis
 exposure table (Table 4.1, ISO 320, f/11) ``--repeats`` times with the rig's default
@@ -52,9 +52,9 @@ LO, HI = 0.002, 0.9
 def simulate_sequences(rig, material_spec: str, leds, rotation: float, repeats: int, scale: float, seed: int,
                        workdir: Path):
     """Shoot the sequences on the twin; yield (led, stack, truth_rate, ref_gain, shot_gains)."""
-    from glossrig.core.hdr import stack_frames
-    from glossrig.core.materials import parse_material
-    from glossrig.core.raw import read_raw
+    from glossrig.core.radiometry.hdr import stack_frames
+    from glossrig.core.models.materials import parse_material
+    from glossrig.core.calibration.raw import read_raw
     from glossrig.twin.effects import THESIS_FLUCTUATIONS
     from glossrig.twin.sensor import frame_rng
     from glossrig.twin.virtual_rig import VirtualRig
@@ -86,7 +86,7 @@ def simulate_sequences(rig, material_spec: str, leds, rotation: float, repeats: 
 
 
 def estimates(stack, noise):
-    from glossrig.core.hdr import NoiseModel, hdr_ml, hdr_thesis, neighbour_correct
+    from glossrig.core.radiometry.hdr import NoiseModel, hdr_ml, hdr_thesis, neighbour_correct
 
     t, m, clip = stack.exposure_s, stack.repeats, stack.clipped
     printed, rep_p = neighbour_correct(stack.images, t, clipped=clip, method="thesis")
@@ -130,7 +130,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=None, help="write the Markdown report here")
     args = p.parse_args(argv)
 
-    from glossrig.core.hdr import NoiseModel
+    from glossrig.core.radiometry.hdr import NoiseModel
     from glossrig.core.rig import default_rig_path, load_rig
 
     rig = load_rig(default_rig_path())

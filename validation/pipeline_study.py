@@ -87,14 +87,14 @@ def _trend_per_10deg(th_deg: np.ndarray, rel: np.ndarray) -> dict:
 def brdf_errors(samples_path: Path, truth_path: Path) -> dict:
     """Extracted luminance BRDF against the truth where the true value exceeds 0.05 1/sr:
     against the point value at the sample's four angles (the issue's figure) and against
-    the footprint truth (:func:`glossrig.core.footprint.footprint_truth`: the point value
+    the footprint truth (:func:`glossrig.core.models.footprint.footprint_truth`: the point value
     averaged over the pixels the sample integrates), each binned by theta_h with a linear
     trend. A trend against the point truth that the footprint truth removes is the
     physics of an area-integrating pixel on a narrow lobe, not an extraction error."""
-    from glossrig.core.footprint import footprint_truth
+    from glossrig.core.models.footprint import footprint_truth
     from glossrig.core.rig import load_rig
     from glossrig.core.samples import luminance, read_samples
-    from glossrig.core.ward import WardParams, ward_from_angles
+    from glossrig.core.models.ward import WardParams, ward_from_angles
 
     df = read_samples(samples_path)
     truth = json.loads(truth_path.read_text())
@@ -197,7 +197,7 @@ def markdown(r: dict, argv) -> str:
             lines.append(f"| {m}: median abs. rel. error vs footprint truth | "
                          f"{100 * e['footprint']['median_abs_rel_err']:.2f} % (signed {100 * e['footprint']['median_rel_err']:+.2f} %) | |")
     lines += ["", "Point truth: the true BRDF at the sample's four angles (the issue's comparison). Footprint truth: "
-              "the same averaged over the pixels the sample integrates (glossrig.core.footprint: area pixels, the "
+              "the same averaged over the pixels the sample integrates (glossrig.core.models.footprint: area pixels, the "
               "Bayer block's bilinear reads, Jacobian from neighbouring blocks). A sample's footprint spans a fraction "
               "of a degree of theta_h at this scale, comparable to a narrow lobe's width: the average lowers the peak "
               "and raises the flanks, a trend against theta_h that is the pixel's physics, not extraction error; it "

@@ -5,7 +5,7 @@
 
 The footprint model (a sample is the BRDF averaged over the pixels of its Bayer block,
 mapped into the lobe's slope domain by the local Jacobian) is
-:mod:`glossrig.core.footprint`. A fit of the point-sampled model (eq. 4.79) to such
+:mod:`glossrig.core.models.footprint`. A fit of the point-sampled model (eq. 4.79) to such
 values is biased once the lobe (full width at half maximum ``2 alpha sqrt(ln 2)`` in
 slope) is not much wider than the footprint.
 
@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from glossrig.core.footprint import (exponent, footprint_average, kernel_rms_px, luminance_kernel,  # noqa: F401
+from glossrig.core.models.footprint import (exponent, footprint_average, kernel_rms_px, luminance_kernel,  # noqa: F401
                                      slope_jacobian, slopes)
 
 LN2 = math.log(2.0)
@@ -62,9 +62,9 @@ def study(work: Path, material: str, render: str, fit: bool = True, at_scale: fl
     for captures at that scale instead of the one measured, by scaling the measured
     Jacobian by (measured scale / at_scale) at the same samples (the footprint shrinks
     with the pixel; the number of samples, which grows, is not modelled)."""
-    from glossrig.core.fit import fit_samples, parameter_errors
+    from glossrig.core.fitting.fit import fit_samples, parameter_errors
     from glossrig.core.samples import luminance, read_samples
-    from glossrig.core.ward import WardParams, ward_from_angles
+    from glossrig.core.models.ward import WardParams, ward_from_angles
 
     df = read_samples(work / f"{material}.parquet")
     truth_json = json.loads((work / material / "truth.json").read_text())

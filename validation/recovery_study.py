@@ -11,7 +11,7 @@ relative errors of rho_d, rho_s, alpha_x, alpha_y and the absolute error of the 
 rotation (luminance fit), against the targets 3 % / 10 % / 10 % / 10 % / 3 degrees.
 Re-running resumes: finished captures, extractions and fits are reused.
 
-The truth is compared in the fit's canonical form (:func:`glossrig.core.fit.canonical`:
+The truth is compared in the fit's canonical form (:func:`glossrig.core.fitting.fit.canonical`:
 ``alpha_x >= alpha_y``, rotation in [0, pi)): ``(ax, ay, rot)`` and ``(ay, ax, rot +
 pi/2)`` are the same lobe, and Table 9.1 writes some materials the other way round.
 
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from glossrig.core.fit import parameter_errors
+from glossrig.core.fitting.fit import parameter_errors
 
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parent.parent / "shared"
@@ -54,7 +54,7 @@ def materials() -> list[str]:
 def lobe_contrast(samples, fit: dict) -> float:
     """Largest share of the fitted lobe in the fitted BRDF over the measured samples:
     max_i (f_i - rho_d / pi) / f_i (eq. 4.79 at the samples' angles)."""
-    from glossrig.core.ward import WardParams, ward_from_angles
+    from glossrig.core.models.ward import WardParams, ward_from_angles
 
     p = WardParams(**{k: fit[k] for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")})
     f = ward_from_angles(samples["theta_in"], samples["theta_out"], samples["theta_h"], samples["phi_h"], p)
@@ -135,13 +135,13 @@ def _se(fit: dict, k: str) -> str:
 
 
 def section_canonical(rep: dict, ev: dict) -> list[str]:
-    from glossrig.core.fit import canonical
-    from glossrig.core.ward import WardParams
+    from glossrig.core.fitting.fit import canonical
+    from glossrig.core.models.ward import WardParams
 
     swapped = [m for m, e in rep["materials"].items() if m in ev and e["truth"]["alpha_x"] < e["truth"]["alpha_y"]]
     lines = ["## Truths written with alpha_x < alpha_y", "",
              "Table 9.1 writes " + ", ".join(swapped) + " with alpha_x < alpha_y; the fit reports every lobe in "
-             "its canonical form (alpha_x >= alpha_y, rotation in [0, pi); `glossrig.core.fit.canonical`, tested in "
+             "its canonical form (alpha_x >= alpha_y, rotation in [0, pi); `glossrig.core.fitting.fit.canonical`, tested in "
              "tests/test_fit.py and tests/test_fit_recovery.py), which describes the same BRDF (eq. 4.79: "
              "(ax, ay, rot) = (ay, ax, rot + pi/2)). The study compares against `canonical(truth)`; against the truth "
              "as written the same fits score as shown last:", ""]
@@ -159,7 +159,7 @@ def section_canonical(rep: dict, ev: dict) -> list[str]:
 def section_no_lobe(work: Path, rep: dict, ev: dict) -> list[str]:
     import pandas as pd
 
-    from glossrig.core.ward import WardParams, ward_from_angles
+    from glossrig.core.models.ward import WardParams, ward_from_angles
 
     flat = [m for m, r in ev.items() if not r["resolvable"]["rho_s"]]
     if not flat:
@@ -223,7 +223,7 @@ def section_footprint(work: Path, rep: dict, ev: dict, runs: list[Path]) -> list
     fps = json.loads(path.read_text())
     lines = ["## Lobes about as narrow as one sample's footprint", "",
              "Every sample is one 2x2 Bayer block whose R, G, B are read at the block centre by bilinear "
-             "interpolation of the CFA planes (core/extract.py `block_values`), and every pixel integrates its "
+             "interpolation of the CFA planes (core/extraction/extract.py `block_values`), and every pixel integrates its "
              "area; the twin renders that way (so does a camera). A sample therefore carries the BRDF averaged over "
              "a kernel a few pixels wide, which the cylinder maps onto a range of half vectors: theta_h changes "
              "fastest along the circumference (the normal turns by one pixel's arc), slowly along the axis. "

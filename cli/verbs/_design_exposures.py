@@ -2,7 +2,7 @@
 
 Chooses, per LED, the exposures of the rig's table that keep every pixel's HDR
 estimate within a noise target at the least capture time
-(:mod:`glossrig.core.exposure_plan`), and writes a capture plan in the format of
+(:mod:`glossrig.core.radiometry.exposure_plan`), and writes a capture plan in the format of
 ``scenes/plans/*.toml`` (:data:`glossrig.hardware.plan.PLAN_FORMAT`) with the
 per-LED exposures in its ``[led_exposures_s]`` table. The written plan is read back
 with the hardware layer's loader, which prints its time against the thesis's full
@@ -62,7 +62,7 @@ def add_arguments(p) -> None:
 
 
 def plan_text(plan, rig_path: str, sample: str, leds, overhead_s: float, twin: dict | None = None) -> str:
-    """The capture plan TOML of an :class:`~glossrig.core.exposure_plan.ExposurePlan`, with
+    """The capture plan TOML of an :class:`~glossrig.core.radiometry.exposure_plan.ExposurePlan`, with
     a ``[twin]`` table (``twin``: material, scale, seed) so that the plan captured with the
     twin backends renders the material it was designed for, at the planned scale."""
     def num(x):
@@ -98,8 +98,8 @@ def plan_text(plan, rig_path: str, sample: str, leds, overhead_s: float, twin: d
 
 
 def run(args) -> int:
-    from glossrig.core.exposure_plan import GAIN_TARGET, THESIS_JITTER, plan_exposures, white_patch_warnings
-    from glossrig.core.materials import parse_material
+    from glossrig.core.radiometry.exposure_plan import GAIN_TARGET, THESIS_JITTER, plan_exposures, white_patch_warnings
+    from glossrig.core.models.materials import parse_material
     from glossrig.core.resources import packaged_reference
     from glossrig.core.rig import load_rig
     from glossrig.hardware.plan import THESIS_OVERHEAD_S, THESIS_SEQUENCE_S, format_duration, load_plan

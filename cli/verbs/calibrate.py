@@ -51,7 +51,7 @@ def sub_camera(sub) -> None:
     p.add_argument("--no-progress", action="store_true")
 
     def run(args) -> int:
-        from glossrig.core.intrinsics import MIN_VIEWS, calibrate_intrinsics, plot_calibration, save_camera
+        from glossrig.core.calibration.intrinsics import MIN_VIEWS, calibrate_intrinsics, plot_calibration, save_camera
 
         prepare_output(args.out, args.force)
         if args.plot:
@@ -98,7 +98,7 @@ def sub_geometry(sub) -> None:
         import cv2
         import numpy as np
 
-        from glossrig.core.poses import calibrate_capture, save_geometry
+        from glossrig.core.calibration.poses import calibrate_capture, save_geometry
 
         prepare_output(args.out, args.force)
         if args.diagnostic:
@@ -145,8 +145,8 @@ def sub_lamps(sub) -> None:
     p.add_argument("--no-progress", action="store_true")
 
     def run(args) -> int:
-        from glossrig.core.intrinsics import load_camera
-        from glossrig.core.lamps import calibrate_lamps, save_lamps
+        from glossrig.core.calibration.intrinsics import load_camera
+        from glossrig.core.calibration.lamps import calibrate_lamps, save_lamps
 
         prepare_output(args.out, args.force)
         d = calibrate_lamps(args.specular_dir, load_camera(args.camera), progress=not args.no_progress)

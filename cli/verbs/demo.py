@@ -72,7 +72,7 @@ def _material_file(spec: str):
     """The file a --material spec reads, when it reads one (its content is a step input)."""
     from pathlib import Path
 
-    from glossrig.core.materials import MATERIALS_DIR
+    from glossrig.core.models.materials import MATERIALS_DIR
 
     if spec.startswith("measured:"):
         p = Path(spec[len("measured:"):])
@@ -121,7 +121,7 @@ def run(args) -> int:
 
     from glossrig.cli.steps import StepRunner
     from glossrig.core.errors import GlossrigError, InputError
-    from glossrig.core.recovery import format_recovery
+    from glossrig.core.report.recovery import format_recovery
     from glossrig.core.rig import default_rig_path
 
     if args.force and args.resume:

@@ -10,7 +10,7 @@ sub-verbs:
              default, --scheduler ADDRESS for an existing one, --workers 0 for
              one process) and write the best design as a new rig file
   errors     expected extended-Ward parameter errors of a rig's design for
-             target materials (Fisher information, glossrig.core.fisher)
+             target materials (Fisher information, glossrig.core.design.fisher)
 
 Further sub-verbs can be added as modules ``glossrig.cli.verbs._design_<name>``
 that define HELP, add_arguments(parser) and run(args), like a verb.
@@ -89,7 +89,7 @@ def add_coverage_arguments(p) -> None:
 def run_coverage(args) -> int:
     import pandas as pd
 
-    from glossrig.core import coverage as cov
+    from glossrig.core.design import coverage as cov
     from glossrig.core.rig import load_rig
 
     say = _log(args.quiet)
@@ -235,7 +235,7 @@ def coverage_markdown(df, summary, led_sets, rot_sets) -> str:
         f"{h['anisotropic_pct']:.4f} %** ({h['bins']['isotropic_bins']} of {h['bins']['isotropic_total']} and "
         f"{h['bins']['anisotropic_bins']} of {h['bins']['anisotropic_total']} bins).",
         "",
-        "Conventions (glossrig.core.coverage): 1-degree bins, `floor(angle)`; theta in [0, 90), "
+        "Conventions (glossrig.core.design.coverage): 1-degree bins, `floor(angle)`; theta in [0, 90), "
         "azimuths in [0, 360) counter-clockwise from the tangent; isotropic space 90 x 90 x 180 with "
         "|phi_in - phi_out| folded onto [0, 180] (`dphi folded`) or 90 x 90 x 360 taken literally "
         "(`dphi literal`); anisotropic space 90 x 90 x 360 x 360. Filters: `lit` = both directions above the "
@@ -308,7 +308,7 @@ def add_optimise_arguments(p) -> None:
 
 def run_optimise(args) -> int:
 
-    from glossrig.core import design as D
+    from glossrig.core.design import placement as D
     from glossrig.core.rig import load_rig
 
     say = _log(args.quiet)
@@ -342,7 +342,7 @@ def run_optimise(args) -> int:
               f"# the expected extended-Ward parameter error (Fisher information) of {args.materials}.\n"
               f"# Everything but the LED table, sample rotations, name and description is copied from {rig.path}.\n"
               f"# LEDs mount on printed vertical posts with sliding carriages (heights -40..120 mm), see\n"
-              f"# glossrig.core.design. Regenerate: see validation/design/README.md.\n#\n")
+              f"# glossrig.core.design.placement. Regenerate: see validation/design/README.md.\n#\n")
     D.write_rig_toml(rig.path, res.positions, res.rotations, out, header=header, name="optimised",
                      description=f"Thesis rig with {args.leds} LEDs placed by glossrig design optimise")
     say(f"wrote {out}: score {res.score:+.4f} (thesis 0), coverage x{res.coverage / res.reference['anisotropic_coverage_design_scale']:.2f}")
@@ -355,9 +355,8 @@ def run_optimise(args) -> int:
 def write_design_report(ref_rig, new_rig, res, materials, report: Path, args, say) -> dict:
     """Final comparison at ``--final-scale``: coverage (every convention of the
     headline table) and Fisher errors of both rigs, design.json, design.md, plots."""
-    from glossrig.core import coverage as cov
-    from glossrig.core import design as D
-
+    from glossrig.core.design import coverage as cov
+    from glossrig.core.design import placement as D
     fs = args.final_scale
     out = {"design": res.to_json(), "command": "glossrig design " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["design"] else None,
            "materials": {lb: p.as_dict() for lb, p in materials}, "noise": args.noise, "final_scale": fs,
@@ -402,8 +401,8 @@ def write_design_report(ref_rig, new_rig, res, materials, report: Path, args, sa
 
 
 def design_markdown(out: dict, materials, ref_rig, new_rig, args) -> str:
-    from glossrig.core.design import mount_of
-    from glossrig.core.fisher import PARAMS
+    from glossrig.core.design.placement import mount_of
+    from glossrig.core.design.fisher import PARAMS
 
     d = out["design"]
     rigs = out["rigs"]
@@ -415,7 +414,7 @@ def design_markdown(out: dict, materials, ref_rig, new_rig, args) -> str:
              f"{d['n_candidates']} candidate mounts, {d['n_feasible']} within the mounting limits; sweep "
              f"{d['timings_s']['sweep']:.0f} s, selection {d['timings_s']['selection']:.0f} s).")
     L.append("")
-    L.append(f"Score (glossrig.core.design): ln(C/C_thesis) + {args.iso_weight:g} * ln(C_iso/C_iso,thesis) - {args.lam:g} "
+    L.append(f"Score (glossrig.core.design.placement): ln(C/C_thesis) + {args.iso_weight:g} * ln(C_iso/C_iso,thesis) - {args.lam:g} "
              f"* mean ln(E/E_thesis), C the anisotropic and C_iso the isotropic coverage, and E the geometric mean of the relative standard errors of each target material "
              f"({', '.join(lb for lb, _ in materials)}), both at image scale {args.scale:g}; noise model {args.noise!r}. "
              f"Optimised score {d['score']:+.3f} (thesis 0).")
@@ -455,7 +454,7 @@ def design_markdown(out: dict, materials, ref_rig, new_rig, args) -> str:
     for row in d["prefixes"]:
         L.append(f"| {row['n_leds']} | {row['score']:+.3f} | {100 * row['anisotropic_coverage']:.4f} | "
                  + " | ".join(f"{row['geometric_mean_relative_error'][lb]:.2e}" for lb, _ in materials) + " |")
-    L += ["", "Mounting limits (glossrig.core.design.MountingLimits): "
+    L += ["", "Mounting limits (glossrig.core.design.placement.MountingLimits): "
           + ", ".join(f"{k}={v}" for k, v in _mount_doc().items()) + ".", "",
           "Plots: `layout.png` (top and side views with board and camera view), `aniso_by_rotation.png`, "
           "`theta_per_led.png`, `coverage_per_led.png`, `expected_errors.png`, `leds_vs_score.png`.", ""]
@@ -463,7 +462,7 @@ def design_markdown(out: dict, materials, ref_rig, new_rig, args) -> str:
 
 
 def _mount_doc():
-    from glossrig.core.design import MountingLimits
+    from glossrig.core.design.placement import MountingLimits
 
     return MountingLimits().to_json()
 
@@ -505,8 +504,7 @@ def plot_layout(ref_rig, new_rig, path) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from glossrig.core import design as D
-
+    from glossrig.core.design import placement as D
     lim = D.MountingLimits()
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 5.5))
     bx, bz = lim.board_x_mm, lim.board_z_mm
@@ -545,7 +543,7 @@ def plot_errors(out: dict, materials, path) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from glossrig.core.fisher import PARAMS
+    from glossrig.core.design.fisher import PARAMS
 
     keys = [k for k in ("thesis_middle", "thesis_16", "optimised") if k in out["rigs"]]
     fig, axes = plt.subplots(1, len(materials), figsize=(4.5 * len(materials), 4), squeeze=False)
@@ -589,7 +587,7 @@ def add_errors_arguments(p) -> None:
 
 
 def run_errors(args) -> int:
-    from glossrig.core import design as D
+    from glossrig.core.design import placement as D
     from glossrig.core.rig import load_rig
 
     if args.out:
@@ -602,7 +600,7 @@ def run_errors(args) -> int:
                            gain_rel=args.gain_noise)
     doc = {"rig": str(rig.path), "leds": leds, "rotations_deg": rots, "scale": args.scale, "noise": args.noise,
            "gain_noise": args.gain_noise,
-           "method": "Fisher information (Cramer-Rao bound), glossrig.core.fisher",
+           "method": "Fisher information (Cramer-Rao bound), glossrig.core.design.fisher",
            "stderr_kind": "noise-only (the --noise model and --gain-noise; excludes calibration and model error)",
            "expected_errors": {lb: e.to_json() for lb, e in errs.items()}}
     text = json.dumps(doc, indent=2) + "\n"

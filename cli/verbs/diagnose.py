@@ -58,9 +58,9 @@ def run(args) -> int:
 
     from glossrig.core.checkpoint import WorkStore, work_folder_for
     from glossrig.core.diagnose import diagnose
-    from glossrig.core.extract import measurement_fingerprint
-    from glossrig.core.intrinsics import load_camera
-    from glossrig.core.lamps import load_lamps
+    from glossrig.core.extraction.extract import measurement_fingerprint
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.calibration.lamps import load_lamps
 
     prepare_output(args.out, args.force, kind="folder", resume=getattr(args, "resume", False))
     ref = None

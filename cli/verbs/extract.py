@@ -69,9 +69,9 @@ def run(args) -> int:
     from pathlib import Path
 
     from glossrig.core.checkpoint import WorkStore, work_folder_for
-    from glossrig.core.extract import check_compatible, extract_samples, measurement_fingerprint
-    from glossrig.core.intrinsics import load_camera
-    from glossrig.core.lamps import load_lamps
+    from glossrig.core.extraction.extract import check_compatible, extract_samples, measurement_fingerprint
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.calibration.lamps import load_lamps
     from glossrig.core.samples import write_samples
 
     resume = getattr(args, "resume", False)

@@ -21,7 +21,7 @@ fit options, the glossrig version and the git commit of the source tree.
 
 The thesis's fit of section 6.2 is `--clip --weighting none --clip-literal`;
 without --clip-literal the model is clipped too (a censored fit, see
-glossrig.core.fit).
+glossrig.core.fitting.fit).
 
 examples:
   glossrig fit samples.parquet --out fit.json
@@ -78,8 +78,8 @@ def _provenance(args, src: Path, channels: list[str], df) -> dict:
 
 
 def run(args) -> int:
-    from glossrig.core.export import write_fit_json, write_mitsuba_material
-    from glossrig.core.fit import CHANNELS, STDERR_KIND, fit_samples
+    from glossrig.core.fitting.export import write_fit_json, write_mitsuba_material
+    from glossrig.core.fitting.fit import CHANNELS, STDERR_KIND, fit_samples
     from glossrig.core.samples import read_samples
 
     log = _log.info
@@ -110,8 +110,8 @@ def run(args) -> int:
     if args.mitsuba:
         write_mitsuba_material(mfit, args.mitsuba)
     if args.plots:
-        from glossrig.core.export import mitsuba_material
-        from glossrig.core.fit_plots import write_plots
+        from glossrig.core.fitting.export import mitsuba_material
+        from glossrig.core.fitting.fit_plots import write_plots
 
         written = write_plots(df, mfit, args.plots)
         try:

@@ -173,7 +173,7 @@ def run(args) -> int:
 
 def _calibrate_camera(checker, cam_path, progress: bool) -> None:
     """glossrig calibrate camera CHECKER_DIR (the rig's board, at least MIN_VIEWS views)."""
-    from glossrig.core.intrinsics import MIN_VIEWS, calibrate_intrinsics, save_camera
+    from glossrig.core.calibration.intrinsics import MIN_VIEWS, calibrate_intrinsics, save_camera
 
     cal, report = calibrate_intrinsics(checker, None, None, min_views=MIN_VIEWS, progress=progress)
     save_camera(cal, report, cam_path, overwrite=True)
@@ -185,8 +185,8 @@ def _calibrate_camera(checker, cam_path, progress: bool) -> None:
 
 def _calibrate_lamps(spec, cam_path, lamps_path, progress: bool) -> None:
     """glossrig calibrate lamps SPECULAR_DIR (thesis 4.3.4)."""
-    from glossrig.core.intrinsics import load_camera
-    from glossrig.core.lamps import calibrate_lamps, save_lamps
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.calibration.lamps import calibrate_lamps, save_lamps
 
     d = calibrate_lamps(spec, load_camera(cam_path), progress=progress)
     save_lamps(d, lamps_path)
@@ -196,9 +196,9 @@ def _calibrate_lamps(spec, cam_path, lamps_path, progress: bool) -> None:
 def _extract(sample, ref, cam_path, lamps_path, samples_path, plots, args, progress: bool, resume: bool) -> None:
     """glossrig extract (thesis 4.3-4.4): finished LEDs kept in samples.parquet.partial/ for a resume."""
     from glossrig.core.checkpoint import WorkStore, work_folder_for
-    from glossrig.core.extract import check_compatible, extract_samples, measurement_fingerprint
-    from glossrig.core.intrinsics import load_camera
-    from glossrig.core.lamps import load_lamps
+    from glossrig.core.extraction.extract import check_compatible, extract_samples, measurement_fingerprint
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.calibration.lamps import load_lamps
     from glossrig.core.provenance import provenance
     from glossrig.core.samples import write_samples
 
@@ -220,8 +220,8 @@ def _extract(sample, ref, cam_path, lamps_path, samples_path, plots, args, progr
 
 def _fit(samples_path, fit_path, log) -> None:
     """glossrig fit with its defaults (thesis 4.5): every channel, noise-only standard errors."""
-    from glossrig.core.export import write_fit_json
-    from glossrig.core.fit import CHANNELS, fit_samples
+    from glossrig.core.fitting.export import write_fit_json
+    from glossrig.core.fitting.fit import CHANNELS, fit_samples
     from glossrig.core.provenance import provenance
     from glossrig.core.samples import read_samples
 
@@ -236,7 +236,7 @@ def _fit(samples_path, fit_path, log) -> None:
 
 
 def _exports(fit_path, samples_path, exports_dir) -> None:
-    from glossrig.core.material_export import write_exports
+    from glossrig.core.fitting.material_export import write_exports
     from glossrig.core.samples import read_samples
 
     written = write_exports(fit_path, read_samples(samples_path), exports_dir)
@@ -245,7 +245,7 @@ def _exports(fit_path, samples_path, exports_dir) -> None:
 
 def _material(fit_path) -> dict:
     """The fitted material as the twin's glossrig_ward dict (what the renders show)."""
-    from glossrig.core.export import mitsuba_material, read_fit_json
+    from glossrig.core.fitting.export import mitsuba_material, read_fit_json
 
     return mitsuba_material(read_fit_json(fit_path))
 
@@ -271,7 +271,7 @@ def _recovery(truth, cam_path, lamps_path, fit_path, recovery_path) -> None:
     import json
 
     from glossrig.core.capture import atomic_write_bytes
-    from glossrig.core.recovery import recovery_table
+    from glossrig.core.report.recovery import recovery_table
 
     rec = recovery_table(truth, camera_json=cam_path, lamps_json=lamps_path, fit_json=fit_path)
     atomic_write_bytes(recovery_path, (json.dumps(rec, indent=1, allow_nan=False) + "\n").encode())
@@ -281,7 +281,7 @@ def _report(out, sample, ref, cam_path, lamps_path, fit_path, samples_path, expo
             log) -> None:
     import json
 
-    from glossrig.core.report import write_report
+    from glossrig.core.report.document import write_report
 
     renders = {k: renders_dir / f"render_{k}.png" for k in ("sphere", "cloth")}
     renders = {k: p for k, p in renders.items() if p.is_file()}

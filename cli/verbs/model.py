@@ -121,8 +121,7 @@ def _write_json(path: Path, data: dict | str) -> None:
 
 
 def _angles(args):
-    from glossrig.core import reproduction as R
-
+    from glossrig.core.reproduction import model as R
     kw = {}
     if args.scale is not None:
         kw["scale"] = args.scale
@@ -132,8 +131,7 @@ def _angles(args):
 
 
 def _crossval(args) -> int:
-    from glossrig.core import reproduction as R
-
+    from glossrig.core.reproduction import model as R
     out = _check_out(args)
     samples = R.load_samples(args.ward, args.coverages)
     exclude = _exclude(args.exclude, samples)
@@ -155,8 +153,7 @@ def _crossval(args) -> int:
 
 
 def _fit(args) -> int:
-    from glossrig.core import reproduction as R
-
+    from glossrig.core.reproduction import model as R
     out = _check_out(args)
     samples = R.load_samples(args.ward, args.coverages)
     exclude = _exclude(args.exclude, samples)
@@ -181,8 +178,8 @@ def _fit(args) -> int:
 
 
 def _predict(args) -> int:
-    from glossrig.core import reproduction as R
-    from glossrig.core.ward import WardParams
+    from glossrig.core.reproduction import model as R
+    from glossrig.core.models.ward import WardParams
 
     model = R.ReproductionModel.load(args.model)
     target = WardParams.parse(args.ward)

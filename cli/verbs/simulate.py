@@ -91,7 +91,7 @@ def run(args) -> int:
     prepare_output(args.out, args.force, kind="folder", resume=resume)
     if args.force and not resume:
         # the cheap inputs first: a typo must not cost the earlier capture
-        from glossrig.core.materials import parse_material
+        from glossrig.core.models.materials import parse_material
         from glossrig.core.rig import load_rig
 
         rig = load_rig(args.rig)

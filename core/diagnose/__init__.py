@@ -18,11 +18,11 @@ import numpy as np
 
 from glossrig.core.errors import InputError
 
-from .catalogue import BrdfModel, brdf_causes
-from .data import load_brdf, load_frames
-from .frames import FrameSet, frame_causes
-from .report import write_report
-from .residuals import brdf_structure, frame_structure
+from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes
+from glossrig.core.diagnose.data import load_brdf, load_frames
+from glossrig.core.diagnose.frames import FrameSet, frame_causes
+from glossrig.core.diagnose.report import write_report
+from glossrig.core.diagnose.residuals import brdf_structure, frame_structure
 
 #: base-model median |relative error| above which a given fit cannot be this capture's material
 FIT_MISMATCH = 0.5
@@ -30,7 +30,7 @@ FIT_MISMATCH = 0.5
 
 def load_fit(path):
     """Luminance Ward parameters of a ``glossrig fit`` JSON."""
-    from glossrig.core.ward import WardParams
+    from glossrig.core.models.ward import WardParams
 
     p = Path(path)
     try:
@@ -49,17 +49,17 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     """``reference_brdf``: callable(samples table) -> (n, 3) RGB BRDF of the reference at the
     rows' angles (e.g. :meth:`glossrig.twin.measured_brdf.MeasuredBRDF.table`), enabling the
     reference_brdf cause. ``reference_measured``: the reference capture already measured
-    (:func:`glossrig.core.extract.measure_capture`) with the same camera and lamps.
+    (:func:`glossrig.core.extraction.extract.measure_capture`) with the same camera and lamps.
 
     ``store``: a :class:`glossrig.core.checkpoint.WorkStore` fingerprinted with every input
     of this diagnosis; each finished stage is kept there and reused (every LED of the
     sample and reference measurements, the material fit, the BRDF-space causes, the
     frame-space causes with their residual structure), so an interrupted diagnosis
     resumes and writes the same report (its ``meta.time_s`` apart)."""
-    from glossrig.core.fit import fit_samples
-    from glossrig.core.intrinsics import load_camera
-    from glossrig.core.lamps import load_lamps
-    from glossrig.core.ward import ward_from_angles
+    from glossrig.core.fitting.fit import fit_samples
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.calibration.lamps import load_lamps
+    from glossrig.core.models.ward import ward_from_angles
 
     t0 = time.time()
     stage = store.get_or_compute if store is not None else (lambda name, compute: compute())

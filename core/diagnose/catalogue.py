@@ -36,11 +36,11 @@ from collections.abc import Callable
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from glossrig.core.angles import ANGLE_COLUMNS
-from glossrig.core.cylinder import SurfaceSamples, sample_angles
-from glossrig.core.ward import WardParams, ward_from_angles
+from glossrig.core.models.angles import ANGLE_COLUMNS
+from glossrig.core.extraction.cylinder import SurfaceSamples, sample_angles
+from glossrig.core.models.ward import WardParams, ward_from_angles
 
-from .data import BrdfData
+from glossrig.core.diagnose.data import BrdfData
 
 GAIN_THRESHOLD = 0.02      # relative held-out gain a BRDF-space cause must beat (null captures stay below)
 PARAM_PENALTY = 0.002      # added per extra parameter
@@ -333,8 +333,8 @@ def brdf_causes(m: BrdfModel) -> list[CauseResult]:
 
     r = _scalar_cause(m, "fresnel", doc, make_fres, (1.1, 3.0), "n", "refractive index", grid_n=15)
     out.append(r)
-    from .geometry import geometry_causes             # LED emission / position, sample radius
-    from .material_models import material_causes     # GGX lobe, the reference's own BRDF
+    from glossrig.core.diagnose.geometry import geometry_causes             # LED emission / position, sample radius
+    from glossrig.core.diagnose.material_models import material_causes     # GGX lobe, the reference's own BRDF
 
     return out + geometry_causes(m) + material_causes(m)
 

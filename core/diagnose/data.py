@@ -1,7 +1,7 @@
 """What diagnosis works on: one capture measured twice over (issue 7).
 
 * **BRDF space** (:class:`BrdfData`): the capture run through the pipeline's own
-  stages (:func:`glossrig.core.extract.measure_capture`, diffuse normalisation by
+  stages (:func:`glossrig.core.extraction.extract.measure_capture`, diffuse normalisation by
   the reference, thesis eq. 4.73-4.78), one row per (Bayer block, LED, rotation)
   with its pixel, surface point and normal, angles, the patch-normalised sample
   and reference values and the measured BRDF (Rec. 709 luminance ``y``).
@@ -22,7 +22,7 @@ import pandas as pd
 
 from glossrig.core.capture import load_manifest
 from glossrig.core.errors import InputError
-from glossrig.core.extract import Measured, check_compatible, diffuse_normalize, measure_capture
+from glossrig.core.extraction.extract import Measured, check_compatible, diffuse_normalize, measure_capture
 from glossrig.core.rig import load_rig
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -76,8 +76,8 @@ def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progre
     keeping the geometry columns the causes need. ``reference`` is the reference capture
     already measured with the same camera and lamps (a study reuses it across captures).
     ``store``: a :class:`glossrig.core.checkpoint.WorkStore` keeping each measured LED
-    (see :func:`glossrig.core.extract.measure_capture`)."""
-    from glossrig.core.extract import camera_arrays
+    (see :func:`glossrig.core.extraction.extract.measure_capture`)."""
+    from glossrig.core.extraction.extract import camera_arrays
 
     check_compatible(sample_dir, reference_dir, what="diagnose")
     ms = measure_capture(sample_dir, cam, lamps, progress=progress, what="diagnose", store=store,

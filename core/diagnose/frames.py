@@ -24,8 +24,8 @@ import numpy as np
 from scipy.ndimage import median_filter
 from scipy.optimize import minimize_scalar
 
-from .catalogue import MAX_PIXELS, CauseResult, chi2
-from .data import FrameData
+from glossrig.core.diagnose.catalogue import MAX_PIXELS, CauseResult, chi2
+from glossrig.core.diagnose.data import FrameData
 
 CLIP_MARGIN = 0.95          # a DN above CLIP_MARGIN * the effective white is treated as clipped
 HOT_Z = 6.0                 # a hot pixel stands this many sigma above its neighbours in every training LED

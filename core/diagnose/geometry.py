@@ -4,7 +4,7 @@ re-evaluates every row's geometry (issue 7).
 
 The measured BRDF of a row is ``f = (albedo / pi) S / R`` (thesis eq. 4.78) with S the
 sample's patch-normalised value and R the reference's at the same directions
-(:func:`glossrig.core.extract.diffuse_normalize`). When the sample capture's rig
+(:func:`glossrig.core.extraction.extract.diffuse_normalize`). When the sample capture's rig
 differs from the one the reference and the calibrations describe, the light reaching
 a surface point changes by the ratio of irradiances ``E'(p) / E(p)``, the patch
 normalisation divides by the same ratio at the white patch, and the lobe is seen at
@@ -14,7 +14,7 @@ the true angles instead of the assumed ones:
     E = I(direction) cos(theta_in) / d^2
 
 (:meth:`Geometry.evaluate`). Angles, points and normals come from
-:mod:`glossrig.core.cylinder` / :mod:`glossrig.core.angles`, the pipeline's own
+:mod:`glossrig.core.extraction.cylinder` / :mod:`glossrig.core.models.angles`, the pipeline's own
 geometry. This describes a sample capture whose rig changed after the reference and
 lamp calibration were taken (the blind study's set-up). A change shared by the
 reference capture cancels in S / R except through the angles.
@@ -34,13 +34,13 @@ import math
 import numpy as np
 from scipy.optimize import least_squares
 
-from glossrig.core.angles import normalize
-from glossrig.core.cylinder import SurfaceSamples, sample_angles, surface_samples
-from glossrig.core.markers import holder_marker_corners
+from glossrig.core.models.angles import normalize
+from glossrig.core.extraction.cylinder import SurfaceSamples, sample_angles, surface_samples
+from glossrig.core.calibration.markers import holder_marker_corners
 from glossrig.core.rig import load_rig
-from glossrig.core.ward import ward_from_angles
+from glossrig.core.models.ward import ward_from_angles
 
-from .catalogue import GAIN_THRESHOLD, BrdfModel, CauseResult, _scalar_cause, chi2
+from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD, BrdfModel, CauseResult, _scalar_cause, chi2
 
 FIT_ROWS = 6_000          # training rows used by the non-linear fits (held-out scoring uses all)
 UP = np.array([0.0, 1.0, 0.0])

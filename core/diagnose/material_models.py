@@ -24,7 +24,7 @@ Three named departures from that model, each a parameterised extension:
   < 1 % for n = 1.5: expected to be unidentifiable from its data.
 
 :func:`fit_lobe` fits ``rho_d / pi + rho_s * lobe`` with the objective of
-``glossrig fit`` (eq. 4.81-4.82, :func:`glossrig.core.fit.peak_weight`), rho_d and
+``glossrig fit`` (eq. 4.81-4.82, :func:`glossrig.core.fitting.fit.peak_weight`), rho_d and
 rho_s solved linearly (variable projection) and the lobe's shape by trust-region
 least squares. :func:`material_causes` registers the lobe and reference causes in
 the diagnose catalogue.
@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from glossrig.core.ward import WardParams, ward_from_angles
+from glossrig.core.models.ward import WardParams, ward_from_angles
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 ANGLES = ("theta_in", "phi_in", "theta_out", "phi_out", "theta_h", "phi_h", "theta_d")
@@ -134,7 +134,7 @@ def angle_arrays(t) -> dict:
 
 def fit_weights(t) -> np.ndarray:
     """Residual multipliers of ``glossrig fit``: eq. 4.82 (mirror reading) times sqrt(weight column)."""
-    from glossrig.core.fit import peak_weight
+    from glossrig.core.fitting.fit import peak_weight
 
     a = angle_arrays(t)
     W = peak_weight(a["theta_in"], a["phi_in"], a["theta_out"], a["phi_out"])
@@ -145,7 +145,7 @@ def fit_weights(t) -> np.ndarray:
 
 def _linear(L, y, W):
     """Non-negative weighted least squares of y on [1/pi, L]: (rho_d, rho_s)."""
-    from glossrig.core.fit import _nnls2
+    from glossrig.core.fitting.fit import _nnls2
 
     W2 = W * W
     a, b, _ = _nnls2(np.sum(W2) / np.pi ** 2, np.sum(W2 * L) / np.pi, np.sum(W2 * L * L),
@@ -158,8 +158,8 @@ def fit_lobe(a: dict, y, W, kind: str = "ggx", start=(0.1, 0.1, 0.0), n=None, fi
     """Fit ``rho_d/pi + rho_s * lobe`` to y (weighted by W, as eq. 4.81). The lobe's
     ``ln alpha_x, ln alpha_y, rot`` (and n when ``fit_n``) by trust-region least squares,
     rho_d and rho_s by non-negative linear least squares at each step. Standard errors:
-    HC1 sandwich (:func:`glossrig.core.fit._sandwich`) of all parameters at the optimum."""
-    from glossrig.core.fit import _sandwich
+    HC1 sandwich (:func:`glossrig.core.fitting.fit._sandwich`) of all parameters at the optimum."""
+    from glossrig.core.fitting.fit import _sandwich
 
     y, W = np.asarray(y, float), np.asarray(W, float)
     lobe = LOBES[kind]
@@ -241,7 +241,7 @@ def _refit_cause(m, a, kind, fac, start):
     """Held-out scores of a lobe of ``kind`` refitted per fold (shape and rho_d, rho_s) to the data
     divided by ``fac``, predicting ``fac`` times the fit, against the base model (Ward lobe of the
     fit, rho_d and rho_s re-solved per fold). Returns (error, base error, fold gains, fit on all rows)."""
-    from .catalogue import chi2
+    from glossrig.core.diagnose.catalogue import chi2
 
     c = m.cols
     one = np.full_like(c["L"], 1 / np.pi)
@@ -263,7 +263,7 @@ def _refit_cause(m, a, kind, fac, start):
 def material_causes(m) -> list:
     """Causes of the catalogue for the material and reference models (BRDF space,
     leave-one-LED-out folds of :class:`glossrig.core.diagnose.catalogue.BrdfModel`)."""
-    from .catalogue import CauseResult
+    from glossrig.core.diagnose.catalogue import CauseResult
 
     c = m.cols
     out = []

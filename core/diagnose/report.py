@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .catalogue import THRESHOLDS, CauseResult
+from glossrig.core.diagnose.catalogue import THRESHOLDS, CauseResult
 
 #: spaces where a cause acts on the raw frames themselves, looked at first
 SENSOR_SPACES = ("frames", "pixels")

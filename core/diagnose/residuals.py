@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .catalogue import BrdfModel, vignetting_factor
-from .frames import FrameSet, _linear_pred
+from glossrig.core.diagnose.catalogue import BrdfModel, vignetting_factor
+from glossrig.core.diagnose.frames import FrameSet, _linear_pred
 
 
 def binned(x, r, n=10) -> dict:

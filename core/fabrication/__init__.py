@@ -10,7 +10,7 @@ previews (:mod:`.preview`; the predicted print lit and rendered beside the targe
 :mod:`.appearance`, thesis fig. 7.7). :mod:`.pipeline` runs it end to end; :mod:`.rasterize`
 maps a machine file back onto the halftone grid to check it.
 """
-from .machine import Machine, ScreenParams, load_machine
-from .pipeline import Plan, fabricate, plan, write
+from glossrig.core.fabrication.machine import Machine, ScreenParams, load_machine
+from glossrig.core.fabrication.pipeline import Plan, fabricate, plan, write
 
 __all__ = ["Machine", "ScreenParams", "load_machine", "Plan", "fabricate", "plan", "write"]

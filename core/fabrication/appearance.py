@@ -7,7 +7,7 @@ halftoned at nominal coverage ``cn`` (scratched area fraction, base 2) by the *B
 
     f = (1 - ce) f_b1 + ce f_b2,        ce = ETN^-1(cn)            (eq. 6.1-6.4)
 
-of its two extended-Ward bases (:mod:`glossrig.core.ward`, eq. 4.79-4.80), ``ce``
+of its two extended-Ward bases (:mod:`glossrig.core.models.ward`, eq. 4.79-4.80), ``ce``
 being the effective coverage. The thesis stresses that Ward *parameters* do not mix
 (6.1), so the prediction is this mix of BRDF values, not a Ward lobe with interpolated
 parameters. ``cn`` is what the halftone actually lays down: the scratched fraction of
@@ -19,7 +19,7 @@ quantisation, clipped ETN values and lost detail all show.
 Where the bases and the ETN come from (:func:`load_gloss_model`):
 
 * ``--model`` holding ``base1.ward`` / ``base2.ward`` (the ``model.json`` that
-  ``core/reproduction.py`` writes): those bases, and the inverse of its ETN;
+  ``core/reproduction/model.py`` writes): those bases, and the inverse of its ETN;
 * ``--model`` with an ETN only: the thesis's bases (``scenes/materials/base_1.toml``,
   sample 0/6, and ``base_2.toml``, the fitted second base of thesis 6.2) and the
   inverse of the model's ETN;
@@ -53,7 +53,7 @@ the radiance leaving a point ``x`` towards the camera is exactly
 (the rendering equation with a single point light, e.g. Pharr, Jakob & Humphreys,
 *PBRT* 3rd ed., 12.2). It is evaluated per output pixel with the per-pixel light and
 view directions and the per-pixel BRDF mix, each base through
-:func:`glossrig.core.ward.ward_local`, the project's one Ward evaluation; this is what a
+:func:`glossrig.core.models.ward.ward_local`, the project's one Ward evaluation; this is what a
 path tracer (Mitsuba and the project's ``glossrig_ward`` plugin, ``twin/``) would
 converge to for this scene, so no renderer is needed and the preview stays in ``core``.
 The radiance is drawn on the sheet's own pixel grid (the photograph rectified onto the
@@ -87,9 +87,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import InputError
-from ..ward import WardParams, check_physical, ward_local
-from .machine import ScreenParams
+from glossrig.core.errors import InputError
+from glossrig.core.models.ward import WardParams, check_physical, ward_local
+from glossrig.core.fabrication.machine import ScreenParams
 
 #: thesis Table 6.4, second base: nominal coverage -> fitted effective coverage of the samples
 #: (sample 4/6 was excluded from the thesis's fit)
@@ -124,7 +124,7 @@ class GlossModel:
 
 
 def _thesis_bases() -> tuple[WardParams, WardParams]:
-    from ..materials import parse_material
+    from glossrig.core.models.materials import parse_material
 
     return parse_material("base_1").ward, parse_material("base_2").ward
 

@@ -8,7 +8,7 @@ fitted by eq. 6.8. Thesis 7.2.2 and 7.2.5 apply it to every pixel before halfton
 
 Eq. 6.7 is printed as ``f(x) = g1 / ((g3 + exp(-g2 x)) + g4)``, in which ``g3`` and
 ``g4`` can only act through their sum; the likely intent, which the project's
-reproduction model (``core/reproduction.py``) fits, is a sigmoid with an offset,
+reproduction model (``core/reproduction/model.py``) fits, is a sigmoid with an offset,
 ``g1 / (g3 + exp(-g2 x)) + g4``. Both are read; the model names its form (below) and
 the offset form is the default. Nominal coverages outside [0, 1] are clipped by the
 caller (and counted in ``summary.json``).
@@ -22,7 +22,7 @@ reads only what fabrication needs, without importing that code::
         "gamma": [g1, g2, g3, g4],    # or "gamma1" ... "gamma4"
         "form": "eq6.7-offset"        # optional, the default: g1 / (g3 + exp(-g2 x)) + g4
                                       # "eq6.7": as printed, g1 / ((g3 + exp(-g2 x)) + g4);
-                                      # core/reproduction.py's formula string for the offset
+                                      # core/reproduction/model.py's formula string for the offset
                                       # form is recognised too
       },
       ...                             # anything else (bases, fit statistics) is ignored here
@@ -36,12 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from ..toml_input import read_json
+from glossrig.core.errors import InputError
+from glossrig.core.toml_input import read_json
 
 MODEL_KIND = "glossrig.reproduction_model"
 FORMS = ("eq6.7-offset", "eq6.7")
-# the offset form as core/reproduction.py spells it (its ETN_FORM), whitespace removed
+# the offset form as core/reproduction/model.py spells it (its ETN_FORM), whitespace removed
 _OFFSET_FORMULA = "gamma[0]/(gamma[2]+exp(-gamma[1]*effective_b2))+gamma[3]"
 _PRINTED_FORMULA = "gamma[0]/((gamma[2]+exp(-gamma[1]*effective_b2))+gamma[3])"
 

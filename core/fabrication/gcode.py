@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InputError
-from .machine import Machine
-from .toolpath import Toolpath
+from glossrig.core.errors import InputError
+from glossrig.core.fabrication.machine import Machine
+from glossrig.core.fabrication.toolpath import Toolpath
 
 
 @dataclass(frozen=True)

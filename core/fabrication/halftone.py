@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
-from .machine import ScreenParams
+from glossrig.core.errors import InputError
+from glossrig.core.fabrication.machine import ScreenParams
 
 
 def line_offsets(n_cols: int, screen: ScreenParams) -> np.ndarray:

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from ..errors import InputError
+from glossrig.core.errors import InputError
 
 _log = logging.getLogger(__name__)
 

@@ -43,8 +43,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..errors import InputError
-from .machine import Machine, ScreenParams
+from glossrig.core.errors import InputError
+from glossrig.core.fabrication.machine import Machine, ScreenParams
 
 
 def cell_size_mm(thickness_mm: float, screen: ScreenParams) -> float:

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from ..resources import resolve_input
-from ..rig import SCENES_DIR
-from ..toml_input import read_toml
+from glossrig.core.errors import InputError
+from glossrig.core.resources import resolve_input
+from glossrig.core.rig import SCENES_DIR
+from glossrig.core.toml_input import read_toml
 
 DEFAULT_MACHINE_FILE = SCENES_DIR / "engraver_roland.toml"
 

@@ -27,18 +27,18 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from ..errors import InputError
-from .appearance import detail_loss, detail_warning, load_gloss_model, preview_render
-from .etn import load_etn
-from .gcode import write_gcode
-from .halftone import coverage_levels, grid_shape, halftone
-from .inputs import load_coverage_image, resample
-from .layout import Layout, cell_size_mm, make_layout
-from .machine import Machine, load_machine
-from .preview import png_preview, svg_preview
-from .rml import write_rml
-from .toolpath import Toolpath, best_order, check_print_fits, check_toolpath, cuts_from_segments, estimate, naive_order
-from .vectorize import Segments, extract_segments
+from glossrig.core.errors import InputError
+from glossrig.core.fabrication.appearance import detail_loss, detail_warning, load_gloss_model, preview_render
+from glossrig.core.fabrication.etn import load_etn
+from glossrig.core.fabrication.gcode import write_gcode
+from glossrig.core.fabrication.halftone import coverage_levels, grid_shape, halftone
+from glossrig.core.fabrication.inputs import load_coverage_image, resample
+from glossrig.core.fabrication.layout import Layout, cell_size_mm, make_layout
+from glossrig.core.fabrication.machine import Machine, load_machine
+from glossrig.core.fabrication.preview import png_preview, svg_preview
+from glossrig.core.fabrication.rml import write_rml
+from glossrig.core.fabrication.toolpath import Toolpath, best_order, check_print_fits, check_toolpath, cuts_from_segments, estimate, naive_order
+from glossrig.core.fabrication.vectorize import Segments, extract_segments
 
 LANGUAGES = {"gcode": "toolpath.gcode", "rml": "toolpath.rml"}
 MAX_CELLS = 60_000_000

@@ -19,9 +19,9 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from .layout import Layout
-from .machine import Machine
-from .toolpath import Toolpath
+from glossrig.core.fabrication.layout import Layout
+from glossrig.core.fabrication.machine import Machine
+from glossrig.core.fabrication.toolpath import Toolpath
 
 
 def _png_bytes(grey: np.ndarray) -> bytes:

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from .layout import Layout
+from glossrig.core.fabrication.layout import Layout
 
 
 def _raster_shallow(p0: np.ndarray, p1: np.ndarray, half_width: float, shape: tuple[int, int]):

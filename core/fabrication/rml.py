@@ -20,10 +20,10 @@ import re
 
 import numpy as np
 
-from ..errors import InputError
-from .gcode import Moves
-from .machine import Machine
-from .toolpath import Toolpath
+from glossrig.core.errors import InputError
+from glossrig.core.fabrication.gcode import Moves
+from glossrig.core.fabrication.machine import Machine
+from glossrig.core.fabrication.toolpath import Toolpath
 
 
 def _units(v: np.ndarray, machine: Machine) -> list[int]:

@@ -18,10 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InputError
-from .layout import Layout
-from .machine import Machine
-from .vectorize import Segments
+from glossrig.core.errors import InputError
+from glossrig.core.fabrication.layout import Layout
+from glossrig.core.fabrication.machine import Machine
+from glossrig.core.fabrication.vectorize import Segments
 
 
 @dataclass(frozen=True)

@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InputError
-from .halftone import halftone, line_offsets
-from .machine import ScreenParams
+from glossrig.core.errors import InputError
+from glossrig.core.fabrication.halftone import halftone, line_offsets
+from glossrig.core.fabrication.machine import ScreenParams
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
     .venv/bin/python validation/design/per_mount.py [--scale 0.25]
 
-For a grid of mounts within the mounting limits (glossrig.core.design) and for
+For a grid of mounts within the mounting limits (glossrig.core.design.placement) and for
 every LED of the thesis rig: the anisotropic 1-degree bins (thesis 7.1.3, lit
 samples, no folding) that the LED fills alone at sample rotation 0, at the
 design sweep's image scale. Sample rotations of one LED barely overlap, and
@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from glossrig.core import coverage as cov
-from glossrig.core import design as D
+from glossrig.core.design import coverage as cov
+from glossrig.core.design import placement as D
 from glossrig.core.rig import load_rig
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -9,7 +9,7 @@ another rotation's, and coverage grows with their number - at the price of one m
 capture per rotation. For the thesis rig (all 16 LEDs) and the optimised rig
 (scenes/optimised_rig.toml), rotations are added greedily from a 15-degree grid
 (-90..75 deg), each step the one that adds the most anisotropic bins (thesis 7.1.3: 1-degree
-bins, lit samples, no folding, this project's headline convention; glossrig.core.coverage).
+bins, lit samples, no folding, this project's headline convention; glossrig.core.design.coverage).
 The image scale is the design sweep's (0.25); the headline figures of README section 1 are
 at full resolution, so compare ratios, not percentages.
 """
@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from glossrig.core import coverage as cov
+from glossrig.core.design import coverage as cov
 from glossrig.core.rig import load_rig
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from glossrig.core.capture import capture_complete
-from glossrig.core.fit import parameter_errors
+from glossrig.core.fitting.fit import parameter_errors
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
@@ -90,7 +90,7 @@ def planned_capture(out: Path, rig: Path, material: str, leds: str, rotations: s
 
 def truth_calibration(capture: Path, work: Path) -> tuple[Path, Path]:
     """camera.json and lamps.json holding the twin's true intrinsics and lamp positions."""
-    from glossrig.core.intrinsics import FORMAT
+    from glossrig.core.calibration.intrinsics import FORMAT
 
     t = json.loads((capture / "truth.json").read_text())
     K = np.array(t["camera_matrix"])

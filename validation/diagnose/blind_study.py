@@ -91,9 +91,9 @@ def setup(work: Path, a):
     fit = work / "fit.json"
     if not fit.exists():
         from glossrig.core.diagnose.data import load_brdf
-        from glossrig.core.fit import fit_samples
-        from glossrig.core.intrinsics import load_camera
-        from glossrig.core.lamps import load_lamps
+        from glossrig.core.fitting.fit import fit_samples
+        from glossrig.core.calibration.intrinsics import load_camera
+        from glossrig.core.calibration.lamps import load_lamps
 
         simulate(null, 999)
         d = load_brdf(null, a.reference, load_camera(a.camera), load_lamps(a.lamps))
@@ -106,7 +106,7 @@ def one_calibration(null: Path, camera):
     """Every trial's capture is measured with the null capture's geometric calibration
     (holder and cylinder poses; the same camera and rig in every trial), computed once:
     the pose refinement is ~40 s a capture, more than the rest of a trial's diagnosis."""
-    import glossrig.core.poses as poses
+    import glossrig.core.calibration.poses as poses
 
     original = poses.calibrate_capture
     cache = {}
@@ -329,9 +329,9 @@ def main(argv=None):
         # import every diagnosis module now: the study runs for an hour and must use one version
         import glossrig.core.diagnose.geometry  # noqa: F401
         import glossrig.core.diagnose.material_models  # noqa: F401
-        from glossrig.core.extract import measure_capture
-        from glossrig.core.intrinsics import load_camera
-        from glossrig.core.lamps import load_lamps
+        from glossrig.core.extraction.extract import measure_capture
+        from glossrig.core.calibration.intrinsics import load_camera
+        from glossrig.core.calibration.lamps import load_lamps
 
         a.camera, a.lamps, a.reference = calibration(work, a)
         a.diagnose_code = code_version()      # the diagnosis modules are imported once, now

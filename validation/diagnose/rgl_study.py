@@ -98,7 +98,7 @@ def heldout_grid() -> dict:
     light, 24 relative azimuths, kept where theta_d > 30 deg (the rig stays below ~27 deg)."""
     import numpy as np
 
-    from glossrig.core.angles import brdf_angles, local_direction
+    from glossrig.core.models.angles import brdf_angles, local_direction
 
     d = np.radians
     ti, to, pi_, dp = np.meshgrid(d(np.arange(2.5, 85, 5)), d(np.arange(2.5, 85, 5)), d([0, 45, 90, 135]),
@@ -130,7 +130,7 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
     from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD
     from glossrig.core.diagnose.material_models import (LUMA, LobeFit, angle_arrays, fit_lobe, fit_weights,
                                                         fresnel_profile, renormalise)
-    from glossrig.core.fit import fit_samples
+    from glossrig.core.fitting.fit import fit_samples
     from glossrig.core.samples import read_samples
     from glossrig.twin.measured_brdf import MeasuredBRDF
 
@@ -227,7 +227,7 @@ def plots(results: dict, work: Path, outdir: Path) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from glossrig.core.angles import brdf_angles, local_direction
+    from glossrig.core.models.angles import brdf_angles, local_direction
     from glossrig.twin.measured_brdf import MeasuredBRDF
 
     outdir.mkdir(parents=True, exist_ok=True)

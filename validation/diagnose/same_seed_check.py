@@ -79,9 +79,9 @@ def main(argv=None):
     from glossrig.core.diagnose import load_fit
     from glossrig.core.diagnose.catalogue import vignetting_factor
     from glossrig.core.diagnose.data import load_brdf
-    from glossrig.core.extract import measure_capture
-    from glossrig.core.intrinsics import load_camera
-    from glossrig.core.lamps import load_lamps
+    from glossrig.core.extraction.extract import measure_capture
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.calibration.lamps import load_lamps
 
     work = Path(a.work)
     cal = work / "calibration"

@@ -10,7 +10,7 @@ and ``results.json``.
 - ``gradient_etn/``: the gradient read as effective coverages through a demonstration
   reproduction model (``demo_model.json``), RML-1. Its ETN is eq. 6.7 (offset form) fitted here to the
   effective/nominal coverages the thesis reports for the second base (table 6.4); it
-  stands in for the model that ``core/reproduction.py`` fits from measurements.
+  stands in for the model that ``core/reproduction/model.py`` fits from measurements.
 
 Checks, for every example: the machine file's cutting moves rasterised back onto the
 halftone grid against ``halftone.png`` (IoU), every coordinate inside the bed and the

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def bench_scale(scale: float, repeats: int) -> dict:
-    from glossrig.core.materials import parse_material
+    from glossrig.core.models.materials import parse_material
     from glossrig.core.rig import load_rig
     from glossrig.twin.sensor import frame_rng
     from glossrig.twin.virtual_rig import VirtualRig

@@ -1,0 +1,211 @@
+"""Lamp positions from a capture of a specular sample (thesis 4.3.4, eq. 4.51-4.53).
+
+For each LED, the brightest HDR samples of a highly specular sample (the
+thesis's transparency sheet) lie where the surface mirrors the lamp into the
+camera. The mirror direction of the view vector about the normal (eq. 4.52)
+points at the lamp; the lamp sits where that ray reaches the lamp's measured
+distance. The thesis takes the 50 brightest pixels and averages.
+
+Departures from the text:
+* eq. 4.53 steps the distance d along the mirror ray from the surface point;
+  the distance the thesis measures is from the *cylinder axis* (its LEDs stand
+  at 30 cm from the axis), so we intersect the mirror ray with the cylinder of
+  radius d about the calibrated axis, which is exact for that measurement;
+* the thesis's 50 brightest pixels are quantised to the pixel (block) grid: at the
+  twin's quarter resolution a block spans 0.6 degrees of surface normal, i.e.
+  1.2 degrees of mirror direction, about 6 mm at 300 mm. Every sample above half
+  the peak is used instead, and the per-sample estimates are averaged with
+  weights ``value - peak / 2``: the highlight is symmetric about the true mirror
+  point, so the weighted mean lands between blocks (measured on the twin: see
+  validation/pipeline_study.py). The spread of the estimates is reported.
+* quantisation still limits the highlight to about 2 mm at quarter scale, because
+  the highlight runs parallel to the pixel rows. The estimate is therefore refined
+  with the same capture's diffuse part (:func:`refine_with_diffuse`): away from
+  the highlight the sheet reflects rho_d / pi of the irradiance I cos(theta_in) / d^2,
+  whose pattern over thousands of samples fixes the lamp's azimuth and height to a
+  fraction of a millimetre; the lamp stays at its measured distance from the axis.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from glossrig.core.models.angles import normalize
+from glossrig.core.capture import atomic_write_json
+from glossrig.core.errors import InputError
+
+N_BRIGHTEST = 50          # the least number of valid samples accepted
+PEAK_FRACTION = 0.5
+
+
+def lamp_from_highlight(points: np.ndarray, normals: np.ndarray, camera_centre: np.ndarray, values: np.ndarray,
+                        distance: float, axis_point: np.ndarray, axis_dir: np.ndarray,
+                        n_brightest: int = N_BRIGHTEST) -> tuple[np.ndarray, float]:
+    """Lamp position (holder frame, mm) and the spread (mm RMS) of the per-pixel estimates."""
+    values = np.asarray(values, float)
+    ok = np.isfinite(values)          # NaN: no valid HDR estimate (too dark / saturated throughout)
+    if ok.sum() < n_brightest:
+        raise InputError(f"only {int(ok.sum())} valid samples, need at least {n_brightest} for the lamp position")
+    peak = values[ok].max()
+    idx = np.flatnonzero(ok & (values >= PEAK_FRACTION * peak))
+    if len(idx) < 3:
+        idx = np.flatnonzero(ok)[np.argsort(values[ok])[-n_brightest:]]
+    wts = np.maximum(values[idx] - PEAK_FRACTION * peak, 0) + 1e-12
+    P, n = points[idx], normals[idx]
+    wo = normalize(camera_centre[None, :] - P)
+    m = 2 * np.sum(n * wo, axis=1, keepdims=True) * n - wo                    # eq. 4.52
+    a = normalize(np.asarray(axis_dir, float))
+    # |(P + s m - A) - ((P + s m - A).a) a| = distance, solved for s > 0
+    q = P - axis_point
+    q_perp = q - (q @ a)[:, None] * a
+    m_perp = m - (m @ a)[:, None] * a
+    A = np.sum(m_perp ** 2, axis=1)
+    B = 2 * np.sum(q_perp * m_perp, axis=1)
+    C = np.sum(q_perp ** 2, axis=1) - distance ** 2
+    s = (-B + np.sqrt(np.maximum(B * B - 4 * A * C, 0))) / (2 * A)
+    est = P + s[:, None] * m
+    lamp = np.average(est, axis=0, weights=wts)
+    spread = float(np.sqrt(np.average(np.sum((est - lamp) ** 2, axis=1), weights=wts)))
+    return lamp, spread
+
+
+def _on_cylinder(azimuth: float, height: float, distance: float, axis_point, axis_dir, ref_dir):
+    a = normalize(np.asarray(axis_dir, float))
+    e1 = normalize(ref_dir - (ref_dir @ a) * a)
+    e2 = np.cross(a, e1)
+    return axis_point + height * a + distance * (np.cos(azimuth) * e1 + np.sin(azimuth) * e2)
+
+
+def refine_with_diffuse(lamp0: np.ndarray, points: np.ndarray, normals: np.ndarray, values: np.ndarray,
+                        distance: float, axis_point: np.ndarray, axis_dir: np.ndarray,
+                        exclude_deg: float = 6.0) -> tuple[np.ndarray, dict]:
+    """Refine a lamp position with the diffusely reflected light of the same capture.
+
+    Model: value = k * cos(theta_in) / d^2 (Lambertian part of the sample; the patch
+    normalisation is a per-LED constant absorbed in k). Samples whose mirror
+    direction lies within ``exclude_deg`` of the first estimate (the specular lobe)
+    are left out. Free parameters: the lamp's azimuth about the axis, its height
+    along it, and k; its distance from the axis stays the measured one. Returns the
+    refined position and fit statistics (rms relative residual, samples used).
+    """
+    from scipy.optimize import least_squares
+
+    a = normalize(np.asarray(axis_dir, float))
+    v = np.asarray(values, float)
+    ok = np.isfinite(v) & (v > 0)
+    P, n, v = points[ok], normals[ok], v[ok]
+    q0 = lamp0 - axis_point
+    h0 = float(q0 @ a)
+    ref = q0 - h0 * a
+    # leave out the lobe: samples whose normal is within exclude_deg/2 of the mirror normal
+    wi0 = normalize(lamp0 - P)
+    keep = np.ones(len(P), bool)
+    if len(P):
+        bright = np.argsort(v)[-max(10, len(v) // 1000):]
+        hmed = np.median(n[bright], axis=0)
+        keep = np.degrees(np.arccos(np.clip(n @ normalize(hmed), -1, 1))) > exclude_deg / 2
+    P, n, v, wi0 = P[keep], n[keep], v[keep], wi0[keep]
+    if len(P) < 200:
+        raise InputError(f"only {len(P)} diffuse samples to refine the lamp position with")
+
+    def model(x):
+        L = _on_cylinder(x[0], x[1], distance, axis_point, a, ref)
+        d = L - P
+        r2 = np.sum(d * d, axis=1)
+        cos = np.sum(d * n, axis=1) / np.sqrt(r2)
+        return np.maximum(cos, 0) / r2
+
+    # leave out grazing light (the terminator is where a small error in the normal matters most)
+    cos0 = np.sum(wi0 * n, axis=1)
+    P, n, v = P[cos0 > 0.15], n[cos0 > 0.15], v[cos0 > 0.15]
+    m0 = model([0.0, h0])
+    k0 = float(np.median(v / m0))
+    sig = np.sqrt(v)           # shot-noise-like weights; a robust loss downweights stray samples
+
+    def resid(x):
+        return (x[2] * k0 * model(x[:2]) - v) / sig
+
+    r0 = resid([0.0, h0, 1.0])
+    scale = 1.4826 * np.median(np.abs(r0 - np.median(r0))) + 1e-12
+    res = least_squares(resid, [0.0, h0, 1.0], x_scale=[1e-3, 0.1, 0.01], loss="soft_l1", f_scale=scale,
+                        method="trf")
+    L = _on_cylinder(res.x[0], res.x[1], distance, axis_point, a, ref)
+    fit = res.x[2] * k0 * model(res.x[:2])
+    rms = float(np.median(np.abs(fit / v - 1)))
+    return L, {"median_abs_rel_residual": rms, "samples": int(len(P)), "shift_mm": float(np.linalg.norm(L - lamp0))}
+
+
+def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = True) -> dict:
+    """Lamp position of every LED sequenced in a capture of a specular sample.
+
+    A capture that cannot serve stops before any image is read: one without exposure
+    sequences (a checkerboard capture) or one whose manifest labels a Lambertian
+    material (``lambert:...``: no highlight to find the lamp from)."""
+    from glossrig.core.capture import load_manifest
+    from glossrig.core.extraction.extract import measure_capture
+    from glossrig.core.rig import load_rig
+
+    man = load_manifest(specular_dir)
+    man.require_sequences("calibrate lamps", "SPECULAR_DIR")
+    if str(man.material).strip().lower().startswith("lambert"):
+        raise InputError(f"SPECULAR_DIR is a capture of a diffuse material ({man.material}); calibrate lamps needs "
+                         f"a capture of a specular sample (a highlight per LED)", path=man.folder)
+    meas = measure_capture(specular_dir, cam, lamps=None, progress=progress, name="SPECULAR_DIR",
+                           what="calibrate lamps")
+    df = meas.table
+    rig = load_rig(meas.rig_path)
+    lamps, spreads, highlight, stats = {}, {}, {}, {}
+    lum = 0.2126 * df.r + 0.7152 * df.g + 0.0722 * df.b
+    for led, sub in df.groupby("led"):
+        rot = sub.rotation.iloc[0]
+        sub = sub[sub.rotation == rot]
+        g = meas.geometry[rot]
+        axis_point = g.t_cyl
+        axis_dir = g.R_cyl @ np.array([0.0, 1.0, 0.0])
+        centre = -g.R_hold.T @ g.t_hold
+        pts = sub[["x", "y", "z"]].to_numpy()
+        nrm = sub[["nx", "ny", "nz"]].to_numpy()
+        dist = float(np.hypot(rig.led(int(led)).position[0], rig.led(int(led)).position[2]))
+        vals = lum[sub.index].to_numpy()
+        lamp, spread = lamp_from_highlight(pts, nrm, centre, vals, dist, axis_point, axis_dir)
+        highlight[int(led)] = lamp.tolist()
+        if refine:
+            lamp, stats[int(led)] = refine_with_diffuse(lamp, pts, nrm, vals, dist, axis_point, axis_dir)
+            if stats[int(led)]["shift_mm"] > 15:
+                raise InputError(f"LED {led}: the diffuse refinement moved the lamp {stats[int(led)]['shift_mm']:.1f} mm "
+                                 "from the highlight estimate; the specular capture looks wrong", path=specular_dir)
+        lamps[int(led)], spreads[int(led)] = lamp, spread
+    return {"kind": "glossrig.lamps", "rig": rig.name, "source": str(Path(specular_dir).resolve()),
+            "method": "highlight-weighted mean of the mirror rays of every sample above half the peak, "
+                      "intersected with the LED's distance from the axis (thesis 4.3.4), then refined "
+                      "with the sample's diffuse reflection" if refine else
+                      "highlight-weighted mean of the mirror rays (thesis 4.3.4)",
+            "lamps_mm": {str(k): v.tolist() for k, v in lamps.items()},
+            "spread_mm": {str(k): v for k, v in spreads.items()},
+            "highlight_estimate_mm": {str(k): v for k, v in highlight.items()},
+            "diffuse_refinement": {str(k): v for k, v in stats.items()}}
+
+
+def save_lamps(d: dict, path) -> None:
+    atomic_write_json(Path(path), d)
+
+
+def load_lamps(path) -> dict[int, np.ndarray]:
+    p = Path(path)
+    try:
+        d = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise InputError("lamp file not found", path=p) from None
+    except json.JSONDecodeError as e:
+        raise InputError(f"lamp file is not valid JSON: {e}", path=p) from None
+    if d.get("kind") != "glossrig.lamps" or "lamps_mm" not in d:
+        raise InputError("not a glossrig lamp file (kind glossrig.lamps with lamps_mm)", path=p)
+    out = {}
+    for k, v in d["lamps_mm"].items():
+        a = np.asarray(v, float)
+        if a.shape != (3,) or not np.all(np.isfinite(a)):
+            raise InputError(f"lamp {k}: expected three finite coordinates", path=p)
+        out[int(k)] = a
+    return out

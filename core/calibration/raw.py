@@ -1,0 +1,384 @@
+"""Reading raw captures and linearising them (thesis 4.3.1).
+
+The capture contract (design.md) says raw files - DNG from the twin, NEF or
+DNG from a real camera - are read through rawpy/LibRaw, with black and white
+levels and exposure metadata taken from the files themselves:
+
+* pixels, CFA pattern, black levels per CFA position and the white
+  (saturation) level come from LibRaw (``rawpy``), which also undoes any
+  in-camera compression curve while decoding (Nikon NEF curves, DNG
+  LinearizationTable) - the "uncompress first" step of thesis 4.3.1;
+* exposure time, ISO, f-number and capture time come from the file's EXIF,
+  read with ``tifffile`` (DNG and Nikon NEF are TIFF structures; the tags may
+  sit in IFD0 as TIFF/EP allows or in the EXIF IFD as cameras write them).
+  Values the caller passes (from the capture manifest) are used only when the
+  file has none, and are cross-checked when it has.
+
+Everything that is wrong with a file stops with :class:`InputError` naming
+the file. Cropping happens right after decoding so full-resolution captures
+(6032x4032) can be streamed while keeping only the region of interest.
+
+Demosaicing lives in :mod:`glossrig.core.calibration.demosaic` and is re-exported here.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import math
+from dataclasses import dataclass
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+from struct import error as struct_error
+
+import numpy as np
+import rawpy
+import tifffile
+
+from glossrig.core.calibration.demosaic import CHANNELS, cfa_array, cfa_string, channel_index, demosaic, demosaic_thesis
+from glossrig.core.errors import InputError
+
+__all__ = ["RawFrame", "ExifInfo", "read_raw", "read_exif", "linearize", "linearize_mosaic", "even_crop",
+           "demosaic", "demosaic_thesis", "channel_index", "cfa_array", "cfa_string"]
+
+#: EXIF tag codes used here (EXIF 2.32 / TIFF-EP).
+TAG_EXPOSURE_TIME = 33434
+TAG_FNUMBER = 33437
+TAG_ISO = 34855          # ISOSpeedRatings / PhotographicSensitivity (SHORT, saturates at 65535)
+TAG_ISO_SPEED = 34867    # ISOSpeed (LONG), used when the above reads 65535
+TAG_DATETIME_ORIGINAL = 36867
+TAG_OFFSET_TIME_ORIGINAL = 36881
+TAG_SUBSEC_TIME_ORIGINAL = 37521
+TAG_EXIF_IFD = 34665
+TAG_MAKE = 271
+TAG_MODEL = 272
+TAG_UNIQUE_CAMERA_MODEL = 50708
+
+
+@dataclass(frozen=True)
+class ExifInfo:
+    """Exposure metadata found in a raw file's TIFF/EXIF structure (None = absent)."""
+
+    exposure_s: float | None = None
+    iso: float | None = None
+    aperture: float | None = None
+    timestamp: datetime | None = None
+    camera: str | None = None
+
+
+@dataclass
+class RawFrame:
+    """One decoded raw capture (or a crop of it), as the pipeline sees it.
+
+    ``mosaic`` is the visible raw CFA image, uint16 (h, w), untouched;
+    ``cfa`` the 2x2 colour indices (0=R, 1=G, 2=B) of ``mosaic[0:2, 0:2]``;
+    ``black`` the black level LI^b of each of those 2x2 positions (thesis
+    4.3.1); ``white`` the saturation level LI^s (one value for all filters).
+    ``origin`` is the (x, y) position of ``mosaic[0, 0]`` in the full visible
+    image of ``full_size`` (width, height). ``iso``, ``aperture`` and
+    ``timestamp`` are None when neither the file nor the caller gave them.
+    """
+
+    path: str
+    mosaic: np.ndarray
+    cfa: np.ndarray
+    black: np.ndarray
+    white: float
+    exposure_s: float
+    iso: float | None
+    aperture: float | None
+    timestamp: datetime | None
+    camera: str
+    origin: tuple[int, int] = (0, 0)
+    full_size: tuple[int, int] = (0, 0)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.mosaic.shape
+
+    def channel_index(self) -> np.ndarray:
+        """ID^cid (thesis fig. 4.7) for this frame's pixels."""
+        return channel_index(self.mosaic.shape, self.cfa)
+
+
+# --------------------------------------------------------------------- EXIF
+
+def _rational(v) -> float | None:
+    """A TIFF RATIONAL as tifffile returns it ((num, den), a number, or a
+    sequence of those: the first is taken)."""
+    if v is None:
+        return None
+    if isinstance(v, (tuple, list)):
+        if len(v) == 2 and all(isinstance(x, (int, np.integer)) for x in v):
+            num, den = v
+            return float(num) / float(den) if den else None
+        if not v:
+            return None
+        return _rational(v[0])
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
+def _text(v) -> str | None:
+    if v is None:
+        return None
+    if isinstance(v, bytes):
+        v = v.decode("latin-1", "replace")
+    s = str(v).strip().strip("\x00").strip()
+    return s or None
+
+
+def _parse_exif_time(dt: str | None, subsec: str | None, offset: str | None) -> datetime | None:
+    """EXIF ``YYYY:MM:DD HH:MM:SS`` + SubSecTimeOriginal + OffsetTimeOriginal
+    (EXIF 2.31). Unset clocks ("0000:00:00 ...") and malformed strings give None."""
+    if not dt:
+        return None
+    try:
+        t = datetime.strptime(dt[:19], "%Y:%m:%d %H:%M:%S")
+    except ValueError:
+        return None
+    if subsec and subsec.isdigit():
+        t = t.replace(microsecond=int((subsec + "000000")[:6]))
+    if offset and len(offset) == 6 and offset[0] in "+-" and offset[3] == ":":
+        try:
+            h, m = int(offset[1:3]), int(offset[4:6])
+        except ValueError:
+            return t
+        sign = 1 if offset[0] == "+" else -1
+        t = t.replace(tzinfo=timezone(sign * timedelta(hours=h, minutes=m)))
+    return t
+
+
+def _exif_lookup(page) -> dict:
+    """Tag code -> value from IFD0 and its EXIF IFD (EXIF IFD wins)."""
+    out = {}
+    for tag in page.tags.values():
+        if tag.code != TAG_EXIF_IFD:
+            out[tag.code] = tag.value
+    exif = page.tags.get(TAG_EXIF_IFD)
+    if exif is not None and isinstance(exif.value, dict):
+        codes = {name: code for code, name in tifffile.TIFF.TAGS.items()}
+        for name, value in exif.value.items():
+            code = codes.get(name)
+            if code is not None:
+                out[code] = value
+    return out
+
+
+def _tiff_info(path: Path, data: bytes | None = None) -> tuple[ExifInfo, str | None, str | None]:
+    """EXIF info from the TIFF structure, plus two diagnoses: ``truncated``
+    (the image data runs past the end of the file: certainly broken) and
+    ``unparsed`` (tifffile could not read the structure: the file may still
+    be a raw format LibRaw knows, so only LibRaw's verdict is final).
+    ``data``: the file's bytes when the caller has already read them."""
+    size = path.stat().st_size if data is None else len(data)
+    try:
+        with tifffile.TiffFile(path if data is None else io.BytesIO(data)) as tf:
+            tags = _exif_lookup(tf.pages[0])
+            # Truncation check: every strip/tile of every IFD (and SubIFD) must
+            # lie inside the file. LibRaw notices too, but says only "I/O error".
+            stack = list(tf.pages)
+            while stack:
+                page = stack.pop()
+                offs, counts = page.dataoffsets, page.databytecounts
+                if offs and counts:
+                    end = max(int(o) + int(c) for o, c in zip(offs, counts))
+                    if end > size:
+                        return ExifInfo(), (f"file is truncated: image data runs to byte {end} "
+                                            f"but the file has only {size} bytes"), None
+                if getattr(page, "subifds", None):
+                    stack.extend(page.pages)
+    except tifffile.TiffFileError as e:
+        if str(e).startswith("not a TIFF"):   # another raw container (CR3, RAF...): LibRaw decides
+            return ExifInfo(), None, None
+        return ExifInfo(), None, f"corrupt TIFF structure ({e})"
+    except (ValueError, TypeError, IndexError, KeyError, OSError, struct_error) as e:
+        return ExifInfo(), None, f"unreadable TIFF structure ({type(e).__name__}: {e})"
+    iso = tags.get(TAG_ISO)
+    if isinstance(iso, (tuple, list)):
+        iso = iso[0] if iso else None
+    if iso is not None and int(iso) == 65535 and tags.get(TAG_ISO_SPEED):
+        iso = tags.get(TAG_ISO_SPEED)
+    make, model = _text(tags.get(TAG_MAKE)), _text(tags.get(TAG_MODEL))
+    camera = _text(tags.get(TAG_UNIQUE_CAMERA_MODEL))
+    if camera is None and (make or model):
+        camera = model if (make and model and model.startswith(make)) else " ".join(x for x in (make, model) if x)
+    exposure = _rational(tags.get(TAG_EXPOSURE_TIME))
+    fnum = _rational(tags.get(TAG_FNUMBER))
+    info = ExifInfo(
+        exposure_s=exposure if exposure and exposure > 0 else None,
+        iso=float(iso) if iso else None,
+        aperture=fnum if fnum and fnum > 0 else None,
+        timestamp=_parse_exif_time(_text(tags.get(TAG_DATETIME_ORIGINAL)), _text(tags.get(TAG_SUBSEC_TIME_ORIGINAL)),
+                                   _text(tags.get(TAG_OFFSET_TIME_ORIGINAL))),
+        camera=camera)
+    return info, None, None
+
+
+def read_exif(path: str | Path) -> ExifInfo:
+    """Exposure time, ISO, f-number, capture time and camera name of a raw
+    file's TIFF/EXIF structure (fields are None where absent)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("raw file not found", path=path)
+    info, truncated, unparsed = _tiff_info(path)
+    if truncated or unparsed:
+        raise InputError(truncated or unparsed, path=path)
+    return info
+
+
+# ---------------------------------------------------------------- reading
+
+def even_crop(box: tuple[int, int, int, int], size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """Grow ``box`` = (x0, y0, x1, y1) (half-open pixel window) to whole 2x2
+    CFA tiles - even x0, y0, x1, y1 - and clip it to ``size`` = (width,
+    height), so the crop keeps the CFA phase of the full image."""
+    x0, y0, x1, y1 = (int(v) for v in box)
+    w, h = int(size[0]), int(size[1])
+    x0, y0 = max(0, x0 - x0 % 2), max(0, y0 - y0 % 2)
+    x1, y1 = min(w, x1 + x1 % 2), min(h, y1 + y1 % 2)
+    if x1 <= x0 or y1 <= y0:
+        raise InputError(f"crop {box} does not overlap the image of size {w}x{h}")
+    return x0, y0, x1, y1
+
+
+def _check_crop(crop, w: int, h: int, path: Path) -> tuple[int, int, int, int]:
+    try:
+        x0, y0, x1, y1 = (int(v) for v in crop)
+    except (TypeError, ValueError):
+        raise InputError(f"crop must be (x0, y0, x1, y1), got {crop!r}", path=path) from None
+    if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h):
+        raise InputError(f"crop {(x0, y0, x1, y1)} is outside the {w}x{h} image", path=path)
+    if x0 % 2 or y0 % 2:
+        raise InputError(f"crop {(x0, y0, x1, y1)} starts at an odd offset, which would shift the CFA phase; "
+                         f"use even x0 and y0 (glossrig.core.calibration.raw.even_crop)", path=path)
+    return x0, y0, x1, y1
+
+
+def _agree(name: str, from_file: float | None, given: float | None, rel_tol: float, path: Path) -> float | None:
+    """The file's value wins; the caller's (manifest) value fills a gap and
+    must agree with the file's within ``rel_tol``."""
+    if given is not None:
+        given = float(given)
+        if not (math.isfinite(given) and given > 0):
+            raise InputError(f"{name} given for this file must be > 0, got {given}", path=path)
+    if from_file is None:
+        return given
+    if given is not None and abs(from_file - given) > rel_tol * max(abs(from_file), abs(given)):
+        raise InputError(f"{name} in the file's EXIF ({from_file:g}) disagrees with the expected value ({given:g}); "
+                         f"the file may belong to another shot", path=path)
+    return from_file
+
+
+def read_raw(path: str | Path, crop: tuple[int, int, int, int] | None = None, *,
+             exposure_s: float | None = None, iso: float | None = None, aperture: float | None = None,
+             timestamp: datetime | None = None, rel_tol: float = 0.1, sha256: str | None = None) -> RawFrame:
+    """Decode a raw file (DNG, NEF, ... anything LibRaw reads with a 2x2
+    Bayer CFA) into a :class:`RawFrame`.
+
+    ``crop`` = (x0, y0, x1, y1), a half-open window of the visible image with
+    even x0 and y0 (so ``cfa`` and ``black`` stay those of the full image);
+    only that window is kept in memory. ``exposure_s``, ``iso``,
+    ``aperture`` and ``timestamp`` are the manifest's values: used when the
+    file's EXIF lacks them, otherwise checked against it (relative tolerance
+    ``rel_tol``; 10 % catches a shot off by a third of a stop while letting
+    1/60 s stand for the table's 0.0166 s). A file with no exposure time,
+    and none given, is an error: HDR merging (thesis 4.3.3) needs it.
+
+    ``sha256``: the checksum the capture manifest recorded for this file. The
+    file is then read into memory once, hashed and decoded from those same
+    bytes, so a file changed since capture (a flipped byte decodes silently
+    into wrong pixel values) stops here instead of reaching the results.
+    :meth:`glossrig.core.capture.Manifest.read_raw` passes it for every
+    capture image.
+
+    The mosaic is in sensor orientation: the file's orientation flag is not
+    applied (the rig's geometry is calibrated in sensor pixels).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("raw file not found", path=path)
+    if path.stat().st_size == 0:
+        raise InputError("raw file is empty", path=path)
+    data = None
+    if sha256 is not None:
+        data = path.read_bytes()
+        if hashlib.sha256(data).hexdigest() != str(sha256).lower():
+            raise InputError("checksum does not match capture.json (file changed since capture)", path=path)
+    info, truncated, unparsed = _tiff_info(path, data)
+    if truncated:
+        raise InputError(truncated, path=path)
+    try:
+        with rawpy.imread(str(path) if data is None else io.BytesIO(data)) as raw:
+            pattern = raw.raw_pattern
+            desc = raw.color_desc.decode("ascii", "replace")
+            if pattern is None or pattern.shape != (2, 2) or raw.num_colors != 3:
+                raise InputError(f"not a 2x2 Bayer CFA raw image (LibRaw colours {desc!r}, pattern "
+                                 f"{None if pattern is None else pattern.tolist()})", path=path)
+            letters = [desc[int(i)] for i in pattern.ravel()]
+            if sorted(letters) != sorted("RGGB"):
+                raise InputError(f"CFA {''.join(letters)!r} is not a red/green/blue Bayer pattern", path=path)
+            cfa = np.array([CHANNELS.index(ch) for ch in letters], np.int8).reshape(2, 2)
+            blpc = list(raw.black_level_per_channel)
+            black = np.array([[blpc[int(pattern[i, j])] for j in range(2)] for i in range(2)], np.float32)
+            white = float(raw.white_level)
+            vis = raw.raw_image_visible
+            h, w = vis.shape
+            if crop is None:
+                x0, y0, x1, y1 = 0, 0, w, h
+            else:
+                x0, y0, x1, y1 = _check_crop(crop, w, h, path)
+            mosaic = np.array(vis[y0:y1, x0:x1], dtype=np.uint16, copy=True)
+    except rawpy.LibRawError as e:
+        msg = e.args[0].decode("utf-8", "replace") if e.args and isinstance(e.args[0], bytes) else str(e)
+        why = f"; {unparsed}" if unparsed else ""
+        raise InputError(f"not a readable raw file (LibRaw: {msg}{why})", path=path) from None
+    if not (white > float(black.max())):
+        raise InputError(f"white level {white:g} is not above the black levels {black.ravel().tolist()}", path=path)
+    exp = _agree("exposure time", info.exposure_s, exposure_s, rel_tol, path)
+    if exp is None:
+        why = f" ({unparsed})" if unparsed else ""
+        raise InputError(f"no exposure time in the file's EXIF{why} and none given by the caller", path=path)
+    return RawFrame(
+        path=str(path), mosaic=mosaic, cfa=cfa, black=black, white=white, exposure_s=exp,
+        iso=_agree("ISO", info.iso, iso, rel_tol, path),
+        aperture=_agree("f-number", info.aperture, aperture, rel_tol, path),
+        timestamp=info.timestamp if info.timestamp is not None else timestamp,
+        camera=info.camera or "unknown camera", origin=(x0, y0), full_size=(w, h))
+
+
+# ------------------------------------------------------------- linearising
+
+def linearize_mosaic(mosaic: np.ndarray, black, white: float) -> np.ndarray:
+    """Thesis eq. 4.1-4.2: CI^lin = clip((CI^raw - LI^b) / (LI^s - LI^b), 0, 1).
+
+    ``black`` is a scalar or the 2x2 black levels of the CFA positions of
+    ``mosaic[0:2, 0:2]``; ``white`` the saturation level. Returns float32.
+
+    The thesis prints min(max(x, 1.0), 0.0), which is 0 for every x; the
+    intended (and here implemented) clipping is min(max(x, 0.0), 1.0). Pixels
+    at or above the white level give exactly 1.0 (the division of equal
+    integers is exact), which the HDR step uses to recognise saturation.
+    """
+    m = np.asarray(mosaic)
+    if m.ndim != 2:
+        raise InputError(f"linearize expects a 2-D CFA mosaic, got shape {m.shape}")
+    b = np.broadcast_to(np.asarray(black, np.float32), (2, 2))
+    if not float(white) > float(b.max()):
+        raise InputError(f"white level {white} must exceed the black levels {b.ravel().tolist()}")
+    out = m.astype(np.float32)   # the one float copy
+    for i in range(2):
+        for j in range(2):
+            plane = out[i::2, j::2]
+            plane -= b[i, j]
+            plane /= np.float32(white) - b[i, j]
+    np.clip(out, 0.0, 1.0, out=out)
+    return out
+
+
+def linearize(frame: RawFrame) -> np.ndarray:
+    """Linearised mosaic of a :class:`RawFrame` in [0, 1] (thesis eq. 4.1-4.2;
+    see :func:`linearize_mosaic` for the clipping fix)."""
+    return linearize_mosaic(frame.mosaic, frame.black, frame.white)

@@ -1,0 +1,696 @@
+"""Radiometric calibration of one exposure sequence (thesis 4.3.3, eq. 4.31-4.44).
+
+The extraction stage calls this once per (sample rotation, LED) on cropped,
+linearised CFA mosaics (thesis eq. 4.1-4.2, :func:`glossrig.core.calibration.raw.linearize`).
+Nothing is demosaiced: every pixel keeps its own CFA colour (thesis 4.3.2,
+"We do not need to demosaic the sequence images"), and every function here is
+pixel-wise, so the CFA layout only matters for patch normalisation
+(:mod:`glossrig.core.radiometry.patch`).
+
+Steps, with the thesis equation each implements and where it departs:
+
+1. :func:`combine_repeats` - eq. 4.31, the mean of the m repeats of each
+   exposure. Also records which (exposure, pixel) had a saturated repeat;
+   the mean of partly clipped repeats lies below 1 and would otherwise pass
+   for a valid value. :func:`stack_frames` builds the stack from
+   :class:`~glossrig.core.calibration.raw.RawFrame` objects and refuses sequences whose
+   repeats disagree.
+2. :func:`neighbour_correct` - eq. 4.32-4.38, removal of the LED's
+   frame-to-frame intensity jitter by forcing neighbouring exposures to the
+   ratio of their exposure times, from the centre of the sequence outwards.
+   The printed correction factor (eq. 4.36) has the wrong sign of the
+   exponent: see the function's docstring for the algebra.
+3. :func:`hdr_thesis` - eq. 4.39-4.44 as printed: unweighted straight-line fit
+   of value against exposure time over the unclipped exposures, sampled at
+   1 s, 0 when fewer than 4 exposures are valid.
+   :func:`hdr_ml` - the estimator this project uses: the (quasi-)maximum
+   likelihood rate of a linear sensor with shot and read noise, i.e. an
+   inverse-variance weighted fit through the origin, which for pure shot
+   noise is ``sum(y) / sum(t)``; the valid exposures are chosen from the
+   estimated expected value, not from the noisy samples.
+
+Units: linearised values are fractions of the white-black range (0..1); HDR
+rates are that fraction per second of exposure (the thesis's "sample at
+exposure 1 s"), variances their squares.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from collections.abc import Sequence
+
+import numpy as np
+
+from glossrig.core.errors import InputError
+
+__all__ = [
+    "NoiseModel", "ExposureStack", "NeighbourReport", "HdrResult",
+    "combine_repeats", "stack_frames", "neighbour_correct", "hdr_thesis", "hdr_ml", "hdr_from_stack",
+    "VALID", "TOO_DARK", "TOO_BRIGHT", "TOO_FEW", "STATUS_REASONS",
+]
+
+#: Status codes of :class:`HdrResult` (``status`` array); NaN rate for all but VALID.
+VALID, TOO_DARK, TOO_BRIGHT, TOO_FEW = 0, 1, 2, 3
+STATUS_REASONS = {
+    VALID: "valid",
+    TOO_DARK: "too dark: even at the longest exposure the expected value is below the lower limit "
+              "(shot and read noise dominate, and linearisation clips negative values at 0)",
+    TOO_BRIGHT: "too bright: saturated, or expected above the upper limit, even at the shortest exposure",
+    TOO_FEW: "fewer valid exposures than min_valid",
+}
+
+#: Pixels per block in :func:`hdr_ml` / :func:`hdr_thesis` (bounds the (n, block) float64 temporaries).
+_BLOCK = 1 << 17
+
+
+# ------------------------------------------------------------------ noise model
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Temporal noise of one linearised frame, in units of the white-black range.
+
+    A photon-transfer model (EMVA 1288 release 4.0, eq. 7; Janesick, "Photon
+    Transfer", 2007): a frame of expected value ``y`` (0..1) has variance
+    ``y / electrons_full_scale + read_sigma**2``; ``electrons_full_scale`` is
+    the number of photo-electrons that fill the white-black range (the
+    inverse of the shot-noise slope) and ``read_sigma`` is read plus
+    quantisation noise. The mean of m repeats has 1/m of that variance.
+    The thesis has no noise model; it is what makes :func:`hdr_ml` weight
+    the exposures correctly.
+    """
+
+    electrons_full_scale: float
+    read_sigma: float
+
+    def __post_init__(self):
+        if not (math.isfinite(self.electrons_full_scale) and self.electrons_full_scale > 0):
+            raise InputError(f"NoiseModel: electrons_full_scale must be > 0, got {self.electrons_full_scale!r}")
+        if not (math.isfinite(self.read_sigma) and self.read_sigma >= 0):
+            raise InputError(f"NoiseModel: read_sigma must be >= 0, got {self.read_sigma!r}")
+
+    @classmethod
+    def from_sensor(cls, *, white: float, black, iso: float, electrons_per_dn_iso100: float,
+                    read_noise_e: float) -> NoiseModel:
+        """From sensor figures: conversion gain K = electrons_per_dn_iso100 *
+        100 / ISO (e-/DN), range R = white - mean(black) DN; then
+        electrons_full_scale = R K and read_sigma = sqrt((read_noise_e/K)^2 +
+        1/12) / R (the 1/12 DN^2 is the rounding to integer DN)."""
+        black = float(np.mean(np.asarray(black, float)))
+        rng = float(white) - black
+        if not rng > 0:
+            raise InputError(f"NoiseModel: white level {white} must exceed the black level {black}")
+        if not (iso > 0 and electrons_per_dn_iso100 > 0 and read_noise_e >= 0):
+            raise InputError(f"NoiseModel: need ISO > 0, electrons_per_dn_iso100 > 0, read_noise_e >= 0; got "
+                             f"{iso}, {electrons_per_dn_iso100}, {read_noise_e}")
+        k = electrons_per_dn_iso100 * 100.0 / float(iso)
+        return cls(electrons_full_scale=rng * k, read_sigma=math.sqrt((read_noise_e / k) ** 2 + 1.0 / 12.0) / rng)
+
+    @classmethod
+    def from_rig(cls, rig, iso: float | None = None) -> NoiseModel:
+        """From a :class:`glossrig.core.rig.Rig`: its ``[camera]`` levels and
+        ``[sensor]`` figures, at ``iso`` (default: the rig's sequence ISO)."""
+        sec = rig.raw.get("sensor")
+        if not isinstance(sec, dict) or "electrons_per_dn_iso100" not in sec or "read_noise_e" not in sec:
+            raise InputError("rig has no [sensor] section with electrons_per_dn_iso100 and read_noise_e "
+                             "(needed for HDR weighting)", path=rig.path)
+        return cls.from_sensor(white=rig.camera.white_level, black=rig.camera.black_level,
+                               iso=rig.sequence_iso if iso is None else iso,
+                               electrons_per_dn_iso100=float(sec["electrons_per_dn_iso100"]),
+                               read_noise_e=float(sec["read_noise_e"]))
+
+    def variance(self, value, repeats: int = 1):
+        """Variance of the mean of ``repeats`` frames of expected ``value``."""
+        v = np.maximum(np.asarray(value, float), 0.0)
+        return (v / self.electrons_full_scale + self.read_sigma ** 2) / repeats
+
+
+# ------------------------------------------------------------ eq. 4.31
+
+@dataclass
+class ExposureStack:
+    """One combined exposure sequence (thesis SI^comb, eq. 4.31).
+
+    ``images`` float32 (n, H, W): per exposure, the mean of the repeats of
+    the linearised mosaic; ``exposure_s`` float64 (n,), strictly increasing;
+    ``clipped`` bool (n, H, W): some repeat was saturated there; ``repeats``
+    m; ``cfa`` the 2x2 colour indices of ``images[:, 0:2, 0:2]`` (None when
+    unknown); ``files[k]`` the raw files of exposure k (for messages).
+    """
+
+    images: np.ndarray
+    exposure_s: np.ndarray
+    clipped: np.ndarray
+    repeats: int
+    cfa: np.ndarray | None = None
+    files: list[list[str]] = field(default_factory=list)
+
+
+def _check_finite(a: np.ndarray, what: str) -> None:
+    if a.size and not np.isfinite(a).all():
+        bad = np.argwhere(~np.isfinite(a))[0]
+        raise InputError(f"{what} holds NaN or infinite values (first at index {tuple(int(i) for i in bad)})")
+
+
+def combine_repeats(linear, *, saturation: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Thesis eq. 4.31: SI^comb_n = (1/m) sum_i SI^lin_{i,n} - the mean of
+    the m repeats of every exposure.
+
+    ``linear``: (m, n, H, W) linearised mosaics (repeat, exposure, row,
+    column), values in units of the white-black range. Returns
+    ``(combined, clipped)``: float32 (n, H, W) means, and bool (n, H, W)
+    marking where at least one repeat reached ``saturation`` (1.0 after
+    :func:`~glossrig.core.calibration.raw.linearize`, which maps every value at or above
+    the white level to exactly 1). Addition to the thesis: the thesis tests
+    saturation on the mean (eq. 4.39, ``< 1``), which lets a mean of partly
+    clipped repeats through as if it were a true value.
+    """
+    a = np.asarray(linear)
+    if a.ndim != 4:
+        raise InputError(f"combine_repeats expects (repeats, exposures, H, W) linear mosaics, got shape {a.shape}")
+    if min(a.shape) < 1:
+        raise InputError(f"combine_repeats: empty input of shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.floating):
+        raise InputError(f"combine_repeats expects linearised float values, got {a.dtype} (linearize the raw "
+                         f"mosaics first, glossrig.core.calibration.raw.linearize)")
+    _check_finite(a, "linear images")
+    combined = a.mean(axis=0, dtype=np.float64).astype(np.float32)
+    clipped = (a >= saturation).any(axis=0)
+    return combined, clipped
+
+
+def _same(x, y) -> bool:
+    if x is None or y is None:
+        return x is y
+    return bool(np.array_equal(np.asarray(x), np.asarray(y)))
+
+
+def stack_frames(frames: Sequence, repeats: Sequence[int], *, exposures_s: Sequence[float] | None = None,
+                 rel_tol: float = 1e-3) -> ExposureStack:
+    """Combine the raw frames of one (rotation, LED) sequence (thesis eq. 4.31).
+
+    ``frames``: :class:`~glossrig.core.calibration.raw.RawFrame` objects (cropped alike),
+    in any order; ``repeats[i]`` the repeat index of ``frames[i]`` (from the
+    capture manifest). Every repeat must hold the same exposures (matched
+    within ``rel_tol``), each once; when ``exposures_s`` (the rig's exposure
+    table) is given, those exactly. All frames must share crop, CFA, black
+    and white levels, ISO and f-number. Anything else is an
+    :class:`InputError` naming the offending file: a missing exposure, an
+    exposure that matches none of another repeat's, a duplicate, a
+    different crop or ISO.
+    """
+    from glossrig.core.calibration.raw import linearize
+
+    frames = list(frames)
+    repeats = [int(r) for r in repeats]
+    if not frames:
+        raise InputError("stack_frames: no frames given")
+    if len(repeats) != len(frames):
+        raise InputError(f"stack_frames: {len(frames)} frames but {len(repeats)} repeat indices")
+    f0 = frames[0]
+    for f in frames[1:]:
+        for name, x, y in (("crop size", f.mosaic.shape, f0.mosaic.shape), ("crop origin", f.origin, f0.origin),
+                           ("CFA pattern", f.cfa, f0.cfa), ("black levels", f.black, f0.black),
+                           ("white level", f.white, f0.white), ("ISO", f.iso, f0.iso),
+                           ("f-number", f.aperture, f0.aperture)):
+            if not _same(x, y):
+                raise InputError(f"{name} {np.asarray(x).tolist() if x is not None else None} differs from "
+                                 f"{np.asarray(y).tolist() if y is not None else None} of {f0.path}; all frames "
+                                 f"of a sequence must share it", path=f.path)
+    by_rep: dict[int, list] = {}
+    for f, r in zip(frames, repeats):
+        by_rep.setdefault(r, []).append(f)
+    reps = sorted(by_rep)
+
+    def match(t: float, table: np.ndarray) -> int:
+        k = int(np.argmin(np.abs(table - t)))
+        return k if abs(table[k] - t) <= rel_tol * max(t, table[k]) else -1
+
+    if exposures_s is not None:
+        table = np.asarray(exposures_s, float)
+        if table.ndim != 1 or table.size == 0 or not np.all(table > 0) or np.any(np.diff(table) <= 0):
+            raise InputError(f"exposure table must be positive and strictly increasing, got {table.tolist()}")
+        table_src = "the exposure table"
+    else:
+        table = np.array(sorted(f.exposure_s for f in by_rep[reps[0]]), float)
+        table_src = f"repeat {reps[0]}"
+    n = table.size
+    slots: dict[int, list] = {}
+    for r in reps:
+        slot: list = [None] * n
+        for f in by_rep[r]:
+            k = match(f.exposure_s, table)
+            if k < 0:
+                near = table[int(np.argmin(np.abs(table - f.exposure_s)))]
+                raise InputError(f"exposure {f.exposure_s:g} s (repeat {r}) matches no exposure of {table_src} "
+                                 f"(nearest {near:g} s); the repeats of a sequence disagree", path=f.path)
+            if slot[k] is not None:
+                raise InputError(f"repeat {r} has exposure {table[k]:g} s twice (also {slot[k].path})", path=f.path)
+            slot[k] = f
+        slots[r] = slot
+    for r in reps:
+        missing = [k for k in range(n) if slots[r][k] is None]
+        if missing:
+            k = missing[0]
+            other = next((slots[q][k] for q in reps if slots[q][k] is not None), None)
+            where = other.path if other is not None else by_rep[r][0].path
+            note = (" (this file is that exposure in another repeat)" if other is not None else
+                    " (no repeat has it; this is the repeat's first file)")
+            raise InputError(f"repeat {r} lacks exposure(s) {', '.join(f'{table[j]:g} s' for j in missing)} of "
+                             f"{table_src}{note}; the sequence is incomplete", path=where)
+    h, w = f0.mosaic.shape
+    lin = np.empty((len(reps), n, h, w), np.float32)
+    for i, r in enumerate(reps):
+        for k in range(n):
+            lin[i, k] = linearize(slots[r][k])
+    combined, clipped = combine_repeats(lin)
+    return ExposureStack(images=combined, exposure_s=table.copy(), clipped=clipped, repeats=len(reps),
+                         cfa=np.asarray(f0.cfa).copy(), files=[[slots[r][k].path for r in reps] for k in range(n)])
+
+
+def _check_stack(images, exposure_s, clipped=None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    y = np.asarray(images)
+    t = np.asarray(exposure_s, float)
+    if y.ndim != 3:
+        raise InputError(f"expected (exposures, H, W) images, got shape {y.shape}")
+    if not np.issubdtype(y.dtype, np.floating):
+        raise InputError(f"expected linearised float images, got {y.dtype}")
+    if t.ndim != 1 or t.size != y.shape[0]:
+        raise InputError(f"{y.shape[0]} images but exposure times of shape {t.shape}")
+    if not np.all(np.isfinite(t)) or not np.all(t > 0):
+        raise InputError(f"exposure times must be positive, got {t.tolist()}")
+    if np.any(np.diff(t) <= 0):
+        raise InputError(f"exposure times must be strictly increasing (sort the sequence; no duplicates), "
+                         f"got {t.tolist()}")
+    _check_finite(y, "images")
+    if clipped is not None:
+        clipped = np.asarray(clipped, bool)
+        if clipped.shape != y.shape:
+            raise InputError(f"clipped mask of shape {clipped.shape} does not match images {y.shape}")
+    return y, t, clipped
+
+
+# ------------------------------------------------------------ eq. 4.32-4.38
+
+@dataclass
+class NeighbourReport:
+    """What :func:`neighbour_correct` did, per exposure k.
+
+    ``factor[k]``: multiplier applied to image k (1 for the reference and
+    for skipped images); ``partner[k]``: index of the image it was
+    compared with (-1: reference or skipped); ``pixels[k]``: pixels used;
+    ``reference``: index of the reference image; ``skipped``: images left
+    uncorrected for lack of pixels.
+    """
+
+    reference: int
+    factor: np.ndarray
+    partner: np.ndarray
+    pixels: np.ndarray
+    skipped: list[int]
+
+
+def _pairs_centre_out(n: int, ref: int) -> list[tuple[int, int]]:
+    """Eq. 4.32 (read as intended): (i, i+1) for i = ref..n-2, then (i, i-1)
+    for i = ref..1. The printed second set, (1, i-1), is a typo."""
+    return [(i, i + 1) for i in range(ref, n - 1)] + [(i, i - 1) for i in range(ref, 0, -1)]
+
+
+def _gain_ratio(out: np.ndarray, sat: np.ndarray, t: np.ndarray, a: int, b: int, step: int, lo: float, hi: float,
+                min_pixels: int) -> tuple[float | None, int]:
+    """Factor that brings image b to the LED gain of (corrected) image a, and
+    the number of pixels it rests on (None if fewer than ``min_pixels``).
+
+    Pixels are chosen where a third image q (next to a or b, outside the
+    pair) predicts both values inside (lo, hi): q's noise is independent of
+    a's and b's, so the choice does not favour pixels whose noise pushed
+    them into the window, which biases a ratio by ~0.02 % per pair
+    (compounding along the chain; tests/test_hdr.py). The ratio is
+    sum(b) / sum(a) over those pixels after dropping pixels whose own
+    ratio is more than 6 robust sigmas (1.4826 MAD) from the median ratio
+    (hot pixels, a moving highlight): a mean of ratios is biased by
+    E[1/x] > 1/E[x], a median of ratios by the ratio's skew.
+
+    q is the image beyond a (towards the reference), else beyond b. When it
+    leaves fewer than ``min_pixels`` - in a sparse exposure plan the longer
+    neighbour saturates where the pair is well exposed (more than ~3x apart on
+    both sides, :mod:`glossrig.core.radiometry.exposure_plan`) - the other one is tried,
+    and then the longer image of the pair itself: choosing on one image's
+    noise biases only its own sum, by second-order edge terms (measured:
+    < 0.001 % for images 4x apart, single repeats), where choosing on both
+    images' values biases the ratio by 0.1 % there. That link beats an image
+    left with the LED's full frame-to-frame jitter (0.5 %).
+    """
+    n = out.shape[0]
+    cnt_max = 0
+    longer = a if t[a] > t[b] else b
+    for q in [k for k in (a - step, b + step) if 0 <= k < n and k not in (a, b)] + [longer]:
+        fac, cnt = _gain_ratio_with(out, sat, t, a, b, q, lo, hi, min_pixels)
+        if fac is not None:
+            return fac, cnt
+        cnt_max = max(cnt_max, cnt)
+    return None, cnt_max
+
+
+def _gain_ratio_with(out, sat, t, a: int, b: int, q: int, lo: float, hi: float,
+                     min_pixels: int) -> tuple[float | None, int]:
+    """:func:`_gain_ratio` with pixels chosen by image ``q`` (a third image, or one of the pair)."""
+    pa = out[q] * np.float32(t[a] / t[q])
+    pb = out[q] * np.float32(t[b] / t[q])
+    usable = ~sat[q] & ~sat[a] & ~sat[b]
+    sel = usable & (pa > lo) & (pa < hi) & (pb > lo) & (pb < hi)
+    ya = out[a][sel].astype(np.float64)
+    yb = out[b][sel].astype(np.float64)
+    keep = ya > 0
+    ya, yb = ya[keep], yb[keep]
+    if ya.size >= min_pixels:
+        ratio = yb / ya
+        med = np.median(ratio)
+        mad = 1.4826 * np.median(np.abs(ratio - med))
+        if mad > 0:
+            inl = np.abs(ratio - med) <= 6.0 * mad
+            ya, yb = ya[inl], yb[inl]
+    cnt = int(ya.size)
+    if cnt < min_pixels:
+        return None, cnt
+    rho = yb.sum() / ya.sum()
+    return float((t[b] / t[a]) / rho), cnt                 # = R E_b / E_a: removes b's own gain
+
+
+#: neighbour_correct's defaults: the value window of the pixels a gain ratio rests on, and
+#: the fewest such pixels that make a link (the thesis's 100); the exposure planner
+#: (:mod:`glossrig.core.radiometry.exposure_plan`) predicts the links with the same figures.
+NEIGHBOUR_WINDOW = (0.1, 0.9)
+NEIGHBOUR_MIN_PIXELS = 100
+
+
+def neighbour_correct(images, exposure_s, *, clipped=None, method: str = "robust", lo: float = NEIGHBOUR_WINDOW[0],
+                      hi: float = NEIGHBOUR_WINDOW[1], min_pixels: int = NEIGHBOUR_MIN_PIXELS,
+                      reference: int | str = "centre"
+                      ) -> tuple[np.ndarray, NeighbourReport]:
+    """Thesis "Neighbor correction" (eq. 4.32-4.38): remove the LED's
+    frame-to-frame intensity jitter from a combined sequence.
+
+    A linear sensor gives SI_k = g_k E_k L for exposure E_k, scene signal L
+    and the LED's (unknown) relative output g_k in frame k. Going from the
+    reference image outwards (eq. 4.32), each image b is scaled so that its
+    ratio to its already corrected neighbour a equals E_b / E_a; then every
+    image carries the reference frame's g (which patch normalisation, eq.
+    4.45-4.50, later divides out together with the slow drift).
+
+    **Eq. 4.36 is inverted.** The thesis takes R = mean(SI_a / SI_b) (eq.
+    4.35) and multiplies SI_b by fac = (E_a / E_b) / R. With SI_a = g_a E_a L
+    and SI_b = g_b E_b L, R = g_a E_a / (g_b E_b), so fac = g_b / g_a and
+    fac SI_b = (g_b^2 / g_a) E_b L: the jitter of b is doubled instead of
+    removed (and errors compound along the chain). The factor that removes
+    it is 1 / fac = R E_b / E_a, giving g_a E_b L. ``method="robust"`` uses
+    it; ``method="thesis"`` reproduces the printed equations for comparison
+    (tests/test_hdr.py shows both).
+
+    ``method="robust"`` (default) also departs from the thesis in how it
+    measures the ratio:
+
+    * pixels are used where a third, independent exposure q of the sequence
+      predicts both values inside (``lo``, ``hi``) = (0.1, 0.9) and no
+      repeat was saturated (``clipped``), instead of a direction-dependent
+      threshold t^p in {0.9, 0.4} on b alone (eq. 4.33-4.34). Choosing on
+      the noisy values of a and b themselves - the thesis, or "well exposed
+      in both" - keeps pixels whose noise pushed them into the window and
+      biases the ratio by ~0.02 % per pair, compounding to ~0.1-0.15 % at
+      the ends of the 18-exposure chain (measured; tests/test_hdr.py);
+    * the ratio is sum(SI_b) / sum(SI_a) over those pixels after dropping
+      outliers more than 6 robust sigmas from the median per-pixel ratio
+      (hot pixels, a highlight at a clipping edge), not the mean of
+      SI_a / SI_b (eq. 4.35), which is biased by E[1/x] > 1/E[x]; a plain
+      median of ratios is biased by the ratio distribution's skew;
+    * when the third image leaves fewer than ``min_pixels`` (100, as in the
+      thesis) such pixels, the third image on the other side and then the
+      pair's longer image choose them (:func:`_gain_ratio`); with still too few,
+      b is compared with the next already corrected image towards the
+      reference instead; if none has enough overlap b is left uncorrected
+      and listed in ``report.skipped``. (The thesis skips the pair and
+      then corrects the next image against the uncorrected b.)
+
+    Both methods: eq. 4.35 writes SI^comb for image a; the text ("start in
+    the center ... and correct towards each direction", errors that
+    "propagate") describes a chain, so a's corrected value is used. Values
+    that are saturated (1, or ``clipped``) are not scaled (eq. 4.37) and the
+    result is clipped to [0, 1] (eq. 4.38; printed min(max(x, 1), 0) is 0
+    for every x, the intended min(max(x, 0), 1) is implemented).
+
+    ``reference``: "centre" (floor(n/2), the thesis), "best" (the image
+    with most pixels in (lo, hi)) or an index. ``images`` (n, H, W) and
+    ``exposure_s`` (n,) increasing. Returns the corrected float32 images and
+    a :class:`NeighbourReport`.
+    """
+    y, t, clipped = _check_stack(images, exposure_s, clipped)
+    n = y.shape[0]
+    if method not in ("robust", "thesis"):
+        raise InputError(f"neighbour_correct: method must be 'robust' or 'thesis', got {method!r}")
+    if not (0.0 <= lo < hi <= 1.0):
+        raise InputError(f"neighbour_correct: need 0 <= lo < hi <= 1, got lo={lo}, hi={hi}")
+    if int(min_pixels) < 1:
+        raise InputError(f"neighbour_correct: min_pixels must be >= 1, got {min_pixels}")
+    sat = (y >= 1.0) if clipped is None else (clipped | (y >= 1.0))
+    if reference == "centre":
+        ref = n // 2
+    elif reference == "best":
+        ref = int(np.argmax([np.count_nonzero((y[k] > lo) & (y[k] < hi) & ~sat[k]) for k in range(n)]))
+    else:
+        try:
+            ref = int(reference)
+        except (TypeError, ValueError):
+            raise InputError(f"neighbour_correct: reference must be 'centre', 'best' or an index, "
+                             f"got {reference!r}") from None
+        if not 0 <= ref < n:
+            raise InputError(f"neighbour_correct: reference index {ref} outside 0..{n - 1}")
+    out = y.astype(np.float32, copy=True)
+    factor = np.ones(n)
+    partner = np.full(n, -1)
+    pixels = np.zeros(n, int)
+    anchored = np.zeros(n, bool)
+    anchored[ref] = True
+    skipped: list[int] = []
+
+    for a, b in _pairs_centre_out(n, ref):
+        fac = None
+        if method == "thesis":
+            tp = 0.9 if a < b else 0.4                                   # eq. 4.33
+            sel = (out[b] > 0.1) & (out[b] < tp)                         # eq. 4.34 (on SI^comb_b = out[b])
+            cnt = int(np.count_nonzero(sel))
+            if cnt >= min_pixels:
+                r_bar = float(np.mean(out[a][sel].astype(np.float64) / out[b][sel]))   # eq. 4.35
+                fac = (t[a] / t[b]) / r_bar                              # eq. 4.36, as printed
+                used = a
+        else:
+            step = 1 if b > a else -1           # direction away from the reference
+            for c in range(a, ref - step, -step):
+                if not anchored[c]:
+                    continue
+                fac, cnt = _gain_ratio(out, sat, t, c, b, step, lo, hi, min_pixels)
+                if fac is not None:
+                    used = c
+                    break
+        if fac is None:
+            skipped.append(b)
+            pixels[b] = cnt
+            continue
+        scale = ~sat[b] & (out[b] < 1.0)                                  # eq. 4.37
+        out[b][scale] *= np.float32(fac)
+        np.clip(out[b], 0.0, 1.0, out=out[b])                             # eq. 4.38 (intended)
+        factor[b], partner[b], pixels[b] = fac, used, cnt
+        anchored[b] = True
+    return out, NeighbourReport(reference=ref, factor=factor, partner=partner, pixels=pixels, skipped=skipped)
+
+
+# ------------------------------------------------------------ eq. 4.39-4.44
+
+def hdr_thesis(images, exposure_s, *, min_valid: int = 4) -> np.ndarray:
+    """Thesis "HDRI Regression", eq. 4.39-4.44, as printed.
+
+    Per pixel, the exposures with 0 < SI < 1 (eq. 4.39; SI^norm there is
+    read as the corrected images SI^corr of eq. 4.41) give points (E_i,
+    SI_i); an unweighted least-squares line a E + b (eq. 4.42-4.43) is
+    sampled at E = 1 s; with fewer than ``min_valid`` = 4 valid exposures the
+    value is 0 (eq. 4.44). Returns float32 (H, W) in units of the white-black
+    range per second.
+
+    Kept to reproduce the thesis and to measure what :func:`hdr_ml` gains
+    (validation/hdr_report.md). Its weaknesses for a linear sensor with
+    shot noise: equal weights although the variance grows with the signal;
+    an intercept that is pure noise for a linear sensor yet enters the
+    value at 1 s; the validity test on the noisy (mean) value, which admits
+    means of partly clipped repeats just below 1 and, near 0, only the
+    positive noise excursions (the negative ones are clipped to 0 by
+    linearisation and then rejected) - both bias the line; and a 0 for
+    "unknown" that is indistinguishable from black.
+    """
+    y, t, _ = _check_stack(images, exposure_s)
+    n, h, w = y.shape
+    flat = y.reshape(n, -1)
+    out = np.zeros(flat.shape[1], np.float32)
+    tt = t[:, None]
+    for s in range(0, flat.shape[1], _BLOCK):
+        yb = flat[:, s:s + _BLOCK].astype(np.float64)
+        v = (yb > 0.0) & (yb < 1.0)                                       # eq. 4.39
+        cnt = v.sum(axis=0)
+        ok = cnt >= min_valid
+        c = np.maximum(cnt, 1)
+        xm = (tt * v).sum(axis=0) / c
+        ym = (yb * v).sum(axis=0) / c
+        dx = (tt - xm) * v
+        sxx = (dx * dx).sum(axis=0)
+        sxy = (dx * (yb - ym)).sum(axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            a = sxy / sxx                                                 # eq. 4.42
+        b = ym - a * xm                                                   # eq. 4.43
+        ok &= sxx > 0
+        out[s:s + _BLOCK] = np.where(ok, a * 1.0 + b, 0.0)                # eq. 4.44
+    return out.reshape(h, w)
+
+
+@dataclass
+class HdrResult:
+    """Per-pixel HDR estimate of one sequence.
+
+    ``rate`` float32 (H, W): linear response in fractions of the white-black
+    range per second of exposure (NaN where ``status`` != VALID);
+    ``variance`` float32 (H, W): its variance from shot and read noise
+    (units^2; NaN where invalid) - the image-wide LED gain error left after
+    neighbour correction is not included (patch normalisation removes it);
+    ``n_valid`` uint8 (H, W): exposures used; ``status`` uint8 (H, W): a key
+    of :data:`STATUS_REASONS`.
+    """
+
+    rate: np.ndarray
+    variance: np.ndarray
+    n_valid: np.ndarray
+    status: np.ndarray
+
+    def reason_counts(self) -> dict[str, int]:
+        """How many pixels have each status (for logs and reports)."""
+        vals, cnt = np.unique(self.status, return_counts=True)
+        return {STATUS_REASONS[int(v)]: int(c) for v, c in zip(vals, cnt)}
+
+
+def hdr_ml(images, exposure_s, noise: NoiseModel, *, repeats: int = 1, clipped=None, lo: float = 0.002,
+           hi: float = 0.95, min_valid: int = 1, iterations: int = 4) -> HdrResult:
+    """HDR rate of a linear sensor: inverse-variance weighted fit through
+    the origin. Replaces thesis eq. 4.39-4.44 (see :func:`hdr_thesis`).
+
+    Model: the combined value of exposure i is y_i = r t_i + noise with
+    variance v_i = (r t_i / N_e + s^2) / m (``noise``: N_e electrons per
+    unit, read sigma s; m ``repeats``). A linear sensor has no offset after
+    black subtraction, so the line goes through the origin (the thesis fits
+    an intercept, eq. 4.43). The weighted least-squares / quasi-likelihood
+    estimate is
+
+        r = sum_i w_i t_i y_i / sum_i w_i t_i^2,   w_i = 1 / v_i(r),
+
+    iterated a few times because the weights depend on r. Without read
+    noise w_i t_i is constant and r = sum(y_i) / sum(t_i), the exact Poisson
+    maximum-likelihood rate; read noise shifts weight from the shortest
+    exposures, where it rivals the shot noise (below ~0.001 of the range
+    with the rig's sensor). With ``lo`` = 0.002 that changes the twin's
+    results by < 0.01 % (validation/hdr_report.md, method D); it is kept for
+    noisier cameras and lower ``lo``. Variance of r: 1 / sum_i w_i t_i^2
+    (the inverse Fisher information).
+
+    Valid exposures: first from the samples, lo < y_i < hi and no repeat
+    saturated (pass 1, only to get a starting r); then from the *estimated
+    expected* value, lo <= r t_i <= hi and no saturated repeat (passes 2..).
+    Choosing on the noisy sample, as eq. 4.39 does, keeps a sample near a
+    limit only when its noise pushed it inside, which biases r; choosing on
+    r t_i does not look at the sample's own noise. ``lo`` = 0.002 (about 20
+    electrons at ISO 320, 3.7 sigma above 0) keeps linearisation's clipping
+    at 0 negligible. ``hi`` = 0.95 is as high as is safe: a frame near the
+    top has ~1 % noise (shot noise, LED jitter, drift between repeats), so
+    0.95 is >= 3.7 sigma below saturation and dropping the rare exposure
+    with a saturated repeat (always done) biases the rest by < 1e-5; going
+    higher would not be safe, going lower wastes information, since with
+    the doubling exposure table the longest valid exposure carries about
+    half of it (validation/hdr_report.md: 0.9 instead of 0.95 costs ~3 %
+    in median error).
+
+    Pixels with fewer than ``min_valid`` valid exposures get NaN rate and
+    variance (not the thesis's 0, which reads as black): ``status`` says
+    why (TOO_DARK, TOO_BRIGHT, TOO_FEW; :data:`STATUS_REASONS`). Dark current
+    is not subtracted: it adds D / N_e per second to every rate (5e-6 with
+    the twin's 0.05 e-/s), far below the ``lo`` limit.
+
+    ``images`` (n, H, W) combined (and neighbour-corrected) values,
+    ``exposure_s`` (n,) increasing, ``clipped`` (n, H, W) from
+    :func:`combine_repeats` (else ``images >= 1`` marks saturation).
+    """
+    y, t, clipped = _check_stack(images, exposure_s, clipped)
+    if not isinstance(noise, NoiseModel):
+        raise InputError(f"hdr_ml needs a NoiseModel (e.g. NoiseModel.from_rig), got {type(noise).__name__}")
+    if int(repeats) < 1:
+        raise InputError(f"hdr_ml: repeats must be >= 1, got {repeats}")
+    if not (0.0 < lo < hi <= 1.0):
+        raise InputError(f"hdr_ml: need 0 < lo < hi <= 1, got lo={lo}, hi={hi}")
+    if int(min_valid) < 1 or int(iterations) < 1:
+        raise InputError(f"hdr_ml: min_valid and iterations must be >= 1, got {min_valid}, {iterations}")
+    n, h, w = y.shape
+    m = int(repeats)
+    ne, s2 = noise.electrons_full_scale, noise.read_sigma ** 2
+    flat = y.reshape(n, -1)
+    cflat = None if clipped is None else clipped.reshape(n, -1)
+    P = flat.shape[1]
+    rate = np.full(P, np.nan, np.float32)
+    var = np.full(P, np.nan, np.float32)
+    nval = np.zeros(P, np.uint8)
+    status = np.zeros(P, np.uint8)
+    tt = t[:, None]
+    for s in range(0, P, _BLOCK):
+        yb = flat[:, s:s + _BLOCK].astype(np.float64)
+        usable = yb < 1.0
+        if cflat is not None:
+            usable &= ~cflat[:, s:s + _BLOCK]
+        v = usable & (yb > lo) & (yb < hi)                        # pass 1: from the samples
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = (yb * v).sum(axis=0) / (tt * v).sum(axis=0)
+        sw = np.zeros_like(r)
+        valid = v
+        for _ in range(int(iterations)):
+            e = r[None, :] * tt                                   # estimated expected values
+            valid = usable & (e >= lo) & (e <= hi)
+            v_i = (np.where(valid, e, 1.0) / ne + s2) / m         # variance of each combined value
+            wt = np.where(valid, 1.0 / v_i, 0.0)
+            sw = (wt * tt * tt).sum(axis=0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                r_new = (wt * tt * yb).sum(axis=0) / sw
+            r_new = np.where(sw > 0, r_new, np.nan)
+            done = np.allclose(r_new, r, rtol=1e-7, atol=0.0, equal_nan=True)
+            r = r_new
+            if done:
+                break
+        cnt = valid.sum(axis=0)
+        ok = (cnt >= min_valid) & np.isfinite(r) & (r > 0)
+        # why the others failed: from the shortest and longest exposure (sample or estimate)
+        with np.errstate(invalid="ignore"):
+            too_bright = ~usable[0] | (yb[0] >= hi) | (r * t[0] > hi)
+            too_dark = (yb[-1] <= lo) | (r * t[-1] < lo)
+        st = np.where(ok, VALID, np.where(too_bright & ~too_dark, TOO_BRIGHT,
+                                          np.where(too_dark, TOO_DARK, TOO_FEW)))
+        # a pixel with some valid exposures but fewer than min_valid is TOO_FEW
+        st = np.where(~ok & (cnt > 0), TOO_FEW, st)
+        rate[s:s + _BLOCK] = np.where(ok, r, np.nan)
+        with np.errstate(divide="ignore"):
+            var[s:s + _BLOCK] = np.where(ok, 1.0 / np.where(sw > 0, sw, np.inf), np.nan)
+        nval[s:s + _BLOCK] = np.minimum(cnt, 255)
+        status[s:s + _BLOCK] = st
+    return HdrResult(rate=rate.reshape(h, w), variance=var.reshape(h, w), n_valid=nval.reshape(h, w),
+                     status=status.reshape(h, w))
+
+
+def hdr_from_stack(stack: ExposureStack, noise: NoiseModel, *, correction: str | None = "robust",
+                   **kwargs) -> HdrResult:
+    """The radiometric stage for one (rotation, LED): neighbour correction
+    (eq. 4.32-4.38, ``correction`` "robust", "thesis" or None) then
+    :func:`hdr_ml` (``kwargs`` go to it). Patch normalisation
+    (:func:`glossrig.core.radiometry.patch.normalise_by_patch`) follows once the
+    marker's white patch is known."""
+    images = stack.images
+    if correction is not None:
+        images, _ = neighbour_correct(images, stack.exposure_s, clipped=stack.clipped, method=correction)
+    return hdr_ml(images, stack.exposure_s, noise, repeats=stack.repeats, clipped=stack.clipped, **kwargs)

@@ -1,0 +1,1 @@
+"""glossrig.core.report.document: The measurement report: HTML/Markdown document, its figures, ground-truth recovery of twin measurements."""
