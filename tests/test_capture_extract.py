@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import RIG
+from conftest import RIG, camera_json_from_truth
 
 pytestmark = pytest.mark.mitsuba
 
@@ -37,10 +37,8 @@ seed = {seed}
 
 
 def test_twin_capture_through_hardware_layer_is_extracted(tmp_path, rig):
-    glossrig("simulate", "--rig", RIG, "--target", "checkerboard", "--views", 8, "--scale", 0.25, "--seed", 3,
-             "--no-progress", "--out", tmp_path / "checker")
-    glossrig("calibrate", "camera", tmp_path / "checker", "--out", tmp_path / "camera.json")
-    # lamp file with the rig's nominal positions (the lamp calibration itself is tested in test_pipeline)
+    # camera file with the twin's true intrinsics and lamp file with the rig's nominal positions: this test is
+    # about the hardware layer's capture; the calibrations themselves are tested in test_pipeline/test_calibration
     (tmp_path / "lamps.json").write_text(json.dumps(
         {"kind": "glossrig.lamps", "rig": rig.name, "lamps_mm": {str(l.id): list(l.position) for l in rig.leds}}))
     for name, mat, seed in (("reference", "lambert:0.8", 1), ("sample", "ward:rho_d=0.3,rho_s=0.02,alpha_x=0.2,alpha_y=0.2", 2)):
@@ -48,6 +46,8 @@ def test_twin_capture_through_hardware_layer_is_extracted(tmp_path, rig):
                  "--out", tmp_path / name, "--no-progress")
         man = json.loads((tmp_path / name / "capture.json").read_text())
         assert man["complete"] and len(man["images"]) == 1 + 2 * 2 * 2
+    truth = json.loads((tmp_path / "sample" / "truth.json").read_text())
+    (tmp_path / "camera.json").write_text(json.dumps(camera_json_from_truth(truth)))
     out = tmp_path / "samples.parquet"
     glossrig("extract", tmp_path / "sample", "--reference", tmp_path / "reference", "--camera", tmp_path / "camera.json",
              "--lamps", tmp_path / "lamps.json", "--out", out, "--no-progress")

@@ -102,28 +102,31 @@ def test_extracted_brdf_matches_truth(rigdata, extracted):
         assert (rigdata / "plots" / name).exists(), name
 
 
-def test_missing_exposure_and_corrupt_file_name_the_file(rigdata, tmp_path):
+def test_missing_exposure_and_corrupt_file_name_the_file(tiny_captures, tmp_path):
+    rigdata = tiny_captures          # bad input needs no accuracy: the smallest capture does
     bad = tmp_path / "sample"
     shutil.copytree(rigdata / "sample", bad)
     man = json.loads((bad / "capture.json").read_text())
     victim = [im for im in man["images"] if im["role"] == "sequence"][7]["file"]
     (bad / victim).unlink()
-    r = glossrig("extract", bad, "--reference", rigdata / "reference", "--camera", rigdata / "camera.json",
+    r = glossrig("extract", bad, "--reference", rigdata / "ref", "--camera", rigdata / "camera.json",
                  "--lamps", rigdata / "lamps.json", "--out", tmp_path / "x.parquet", "--no-progress", check=False)
     assert r.returncode == 2 and victim in r.stderr, r.stderr[-500:]
     shutil.copy(rigdata / "sample" / victim, bad / victim)
     data = (bad / victim).read_bytes()
     (bad / victim).write_bytes(data[: len(data) // 3])
-    r = glossrig("extract", bad, "--reference", rigdata / "reference", "--camera", rigdata / "camera.json",
+    r = glossrig("extract", bad, "--reference", rigdata / "ref", "--camera", rigdata / "camera.json",
                  "--lamps", rigdata / "lamps.json", "--out", tmp_path / "x.parquet", "--no-progress", check=False)
     assert r.returncode == 2 and victim in r.stderr, r.stderr[-500:]
     assert not (tmp_path / "x.parquet").exists()
 
 
-def test_flipped_bytes_in_a_dng_stop_extract(rigdata, tmp_path):
+def test_flipped_bytes_in_a_dng_stop_extract(tiny_captures, tmp_path):
     """Issue #16: bytes flipped inside a DNG's pixel data still decode (into wrong values);
     extract used to succeed with thousands of rows changed. The manifest's sha256 stops it."""
     import tifffile
+
+    rigdata = tiny_captures
 
     bad = tmp_path / "sample"
     shutil.copytree(rigdata / "sample", bad)
@@ -140,7 +143,7 @@ def test_flipped_bytes_in_a_dng_stop_extract(rigdata, tmp_path):
         data[k] ^= 0x01
     f.write_bytes(bytes(data))
     out = tmp_path / "x.parquet"
-    r = glossrig("extract", bad, "--reference", rigdata / "reference", "--camera", rigdata / "camera.json",
+    r = glossrig("extract", bad, "--reference", rigdata / "ref", "--camera", rigdata / "camera.json",
                  "--lamps", rigdata / "lamps.json", "--out", out, "--no-progress", check=False)
     assert r.returncode == 2, r.stderr[-500:]
     assert f"{f}: checksum does not match capture.json (file changed since capture)" in r.stderr, r.stderr[-500:]

@@ -18,7 +18,7 @@ from glossrig.core.models.materials import parse_material
 from glossrig.core.calibration.raw import demosaic, linearize, read_raw
 from glossrig.core.models.ward import ward_from_angles
 
-from conftest import RIG
+from conftest import RIG, SHARED
 
 pytestmark = pytest.mark.mitsuba
 
@@ -56,7 +56,7 @@ def test_render_matches_numpy_ward(rig):
 def quarter_capture(tmp_path_factory):
     out = tmp_path_factory.mktemp("cap") / "sample"
     cmd = [sys.executable, "-m", "glossrig.cli.main", "simulate", "--rig", str(RIG), "--material", "sample_2_6",
-           "--leds", "middle", "--rotations", "0", "--repeats", "1", "--scale", "0.25", "--seed", "1",
+           "--leds", "6,9", "--rotations", "0", "--repeats", "1", "--scale", "0.25", "--seed", "1",
            "--no-progress", "--out", str(out)]
     subprocess.run(cmd, check=True, capture_output=True, text=True)
     return out
@@ -65,8 +65,8 @@ def quarter_capture(tmp_path_factory):
 def test_capture_layout_and_rawpy(quarter_capture, rig):
     man = load_manifest(quarter_capture)
     assert man.complete
-    assert len(man.images) == 1 + 8 * 18
-    assert len(list(quarter_capture.glob("*.dng"))) == 145
+    assert len(man.images) == 1 + 2 * 18
+    assert len(list(quarter_capture.glob("*.dng"))) == 37
     assert [im.role for im in man.images].count("calibration") == 1
     man.verify(check_hashes=True)
     d = json.loads((quarter_capture / "capture.json").read_text())
@@ -160,11 +160,10 @@ def test_bad_input_clear_errors(tmp_path):
         assert not (tmp_path / d / "capture.json").exists()
 
 
+@pytest.mark.needs_shared("data/rgl/vch_golden_yellow_rgb.bsdf")
 def test_measured_rgl_material_simulates(tmp_path):
     """A real measured BRDF (RGL, Dupuy & Jakob 2018) through Mitsuba's `measured` plugin;
     negative radiance from its RGB interpolation is clamped and counted in the truth."""
-    from conftest import SHARED
-
     out = tmp_path / "cap"
     r = subprocess.run([sys.executable, "-m", "glossrig.cli.main", "simulate", "--rig", str(RIG), "--material",
                         f"measured:{SHARED / 'data/rgl/vch_golden_yellow_rgb.bsdf'}", "--leds", "9", "--rotations", "0",
