@@ -1,4 +1,5 @@
-"""``glossrig <verb>``: every module of :mod:`glossrig.cli.verbs` is a verb."""
+"""``glossrig <verb>``: every module of :mod:`glossrig.cli.verbs` is a verb (its docstring
+says what a verb module defines, sub-verbs included)."""
 from __future__ import annotations
 
 import argparse
@@ -37,17 +38,20 @@ def build_parser() -> argparse.ArgumentParser:
         mod = importlib.import_module(f"{verbs.__name__}.{info.name}")
         p = sub.add_parser(info.name.replace("_", "-"), help=mod.HELP, description=mod.__doc__,
                            formatter_class=HelpFormatter)
-        mod.add_arguments(p)
+        if hasattr(mod, "SUBVERBS"):
+            verbs.add_subverbs(p, mod.SUBVERBS, metavar=getattr(mod, "SUBVERB_METAVAR", "SUBVERB"))
+        else:
+            mod.add_arguments(p)
+            p.set_defaults(_run=mod.run)
         _add_verbosity(p)
         _set_formatter(p)
-        p.set_defaults(_run=mod.run)
     return parser
 
 
 def _set_formatter(p: argparse.ArgumentParser) -> None:
     """:class:`HelpFormatter` on every sub-verb's parser below ``p`` too (``calibrate
-    camera``, ``model fit``, ``design ...``): a verb module's ``add_parser`` does not
-    inherit its parent's formatter."""
+    camera``, ``model fit``, ``design ...``): the parsers of
+    :func:`glossrig.cli.verbs.add_subverbs` do not inherit their parent's formatter."""
     p.formatter_class = HelpFormatter
     for action in p._actions:
         if (action.help is None and action.option_strings and action.default is not None

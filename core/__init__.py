@@ -16,7 +16,8 @@ Top level                 What it holds
 ``errors``                errors a user sees (file-named, exit code 2)
 ``toml_input``            the one TOML/JSON reader with file-named errors
 ``resources``             where packaged scenes are; how a path option resolves
-``checkpoint``            fingerprints, resume, the one atomic write
+``atomic``                the one atomic file write (temporary file, fsync, rename)
+``checkpoint``            fingerprints, resume
 ``provenance``            what an output was made from and by which code
 ``progress``              when progress bars show
 ========================  ===================================================
@@ -40,7 +41,7 @@ Thesis                                     Module
 4.3-4.4 samples, diffuse normalisation     ``extraction.extract``
 4.5.2 optimisation (fit)                   ``fitting.fit``, ``fitting.fit_plots``
 (exports, fit.json reader)                 ``fitting.export``, ``fitting.material_export``
-6.1-6.2 reproduction model, ETN            ``reproduction.model``, ``fabrication.etn``
+6.1-6.2 reproduction model, ETN            ``reproduction.model`` (fabrication reads its ETN)
 5.1-5.2 fabrication (halftone -> cuts)     ``fabrication`` (``halftone``, ``vectorize``, ``toolpath``, ...)
 7.1.3 BRDF space coverage                  ``design.coverage``, ``design.placement``, ``design.fisher``
 7.2.1 model validation                     ``reproduction.model`` (leave-one-out)

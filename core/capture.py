@@ -8,20 +8,19 @@ least ``file``, ``role`` (calibration / sequence / checkerboard), ``leds``,
 ``rotation`` (deg), ``repeat``, ``exposure_s``, ``iso``, ``aperture``, ``time``
 (ISO 8601) and ``sha256``.
 
-Writes are atomic (temporary file + rename) so a crash never leaves a
+Writes are atomic (:mod:`glossrig.core.atomic`) so a crash never leaves a
 half-written manifest; nothing already written is overwritten silently.
 """
 from __future__ import annotations
 
 import hashlib
-import json
-import os
-import tempfile
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
+from glossrig.core.atomic import atomic_write_json
 from glossrig.core.errors import InputError
+from glossrig.core.toml_input import read_json
 
 MANIFEST = "capture.json"
 TRUTH = "truth.json"
@@ -100,30 +99,6 @@ def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
 
 def now_iso() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
-
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder
-    and an atomic rename, fsynced: readers see the old file or the new one."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.name + ".", suffix=".part")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            os.fchmod(f.fileno(), 0o644)   # mkstemp creates 0600; captures are shared lab data
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-
-
-def atomic_write_json(path: str | Path, obj) -> None:
-    atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=False) + "\n").encode())
 
 
 @dataclass
@@ -268,26 +243,43 @@ def capture_complete(folder: str | Path) -> bool:
     capture is marked complete only after its last image is written). False for a missing,
     half-written or unreadable one - the test resumable studies use before re-capturing."""
     try:
-        return bool(json.loads((Path(folder) / MANIFEST).read_text()).get("complete", False))
-    except (OSError, ValueError, AttributeError):
+        return load_manifest(folder).complete
+    except InputError:
         return False
 
 
 def load_manifest(folder: str | Path) -> Manifest:
+    """The manifest (``capture.json``, :meth:`Manifest.save`) of the capture ``folder``:
+    the one reader of the file. Errors name the folder or the file."""
     folder = Path(folder)
     path = folder / MANIFEST
     if not folder.is_dir():
         raise InputError("capture folder not found", path=folder)
-    try:
-        d = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError("no capture manifest (capture.json) in this folder", path=folder) from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"manifest is not valid JSON: {e}", path=path) from None
+    if not path.exists():
+        raise InputError("no capture manifest (capture.json) in this folder", path=folder)
+    d = read_json(path, "manifest")
+    if not isinstance(d, dict):
+        raise InputError("manifest is not a JSON object", path=path)
     for k in ("rig", "material", "images"):
         if k not in d:
             raise InputError(f"manifest lacks key {k!r}", path=path)
+    if not isinstance(d["images"], list) or not all(isinstance(x, dict) for x in d["images"]):
+        raise InputError("manifest images must be a list of objects", path=path)
     images = [ImageEntry.from_json(x, str(path)) for x in d["images"]]
     meta = {k: v for k, v in d.items() if k not in ("rig", "material", "images", "complete")}
     return Manifest(folder=folder, rig=d["rig"], material=d["material"], images=images,
                     complete=bool(d.get("complete", False)), meta=meta)
+
+
+def read_truth(path: str | Path) -> dict:
+    """The twin's ground truth of a simulated capture (``truth.json`` in the capture folder,
+    written by :mod:`glossrig.twin.simulate` and the twin camera backend; the pipeline never
+    reads it, only evaluations of a measurement do): the one reader of the file. ``path``:
+    the file, or the capture folder holding it. Errors name the file."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / TRUTH
+    d = read_json(path, TRUTH)
+    if not isinstance(d, dict):
+        raise InputError(f"{TRUTH} is not a JSON object", path=path)
+    return d

@@ -30,8 +30,10 @@ from pathlib import Path
 from collections.abc import Callable
 from typing import Any
 
+from glossrig.core.atomic import atomic_write, atomic_write_json
 from glossrig.core.capture import MANIFEST, sha256_file
 from glossrig.core.errors import InputError
+from glossrig.core.toml_input import read_json
 
 _log = logging.getLogger(__name__)
 
@@ -89,24 +91,18 @@ def fingerprint(files: dict | None = None, options: dict | None = None, captures
     return json.loads(json.dumps(fp))
 
 
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    write(tmp)
-    os.replace(tmp, path)
-
-
 def write_record(path, doc: dict) -> None:
     """Write a JSON record atomically (a reader never sees half of it)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_write(p, lambda t: t.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n"))
+    atomic_write_json(p, doc, sort_keys=True)
 
 
 def read_record(path) -> dict | None:
     """A record written by :func:`write_record`, or None when missing or unreadable."""
     try:
-        d = json.loads(Path(path).read_text())
-    except (OSError, ValueError):
+        d = read_json(path, "record")
+    except InputError:
         return None
     return d if isinstance(d, dict) else None
 
@@ -186,12 +182,12 @@ class WorkStore:
 
         s = _unit_stem(name)
         if isinstance(value, pd.DataFrame):
-            _atomic_write(self.folder / f"{s}.parquet", lambda t: value.to_parquet(t, index=True))
+            atomic_write(self.folder / f"{s}.parquet", lambda t: value.to_parquet(t, index=True))
         else:
             def dump(t: Path) -> None:
                 with open(t, "wb") as f:
                     pickle.dump(value, f, protocol=pickle.HIGHEST_PROTOCOL)
-            _atomic_write(self.folder / f"{s}.pkl", dump)
+            atomic_write(self.folder / f"{s}.pkl", dump)
 
     def get_or_compute(self, name: str, compute: Callable[[], Any]):
         """The stored unit ``name``, or ``compute()`` stored as it."""

@@ -15,7 +15,7 @@ import numpy as np
 
 from glossrig.core.errors import InputError
 from glossrig.core.resources import resolve_input, scenes_dir
-from glossrig.core.toml_input import read_toml
+from glossrig.core.toml_input import check_number, read_toml
 
 #: the folder holding core/: the checkout's root, or site-packages/glossrig when installed
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -53,6 +53,7 @@ class Camera:
     black_level: tuple[int, int, int, int]
     distance_to_axis: float
     roll_deg: float
+    lens: str = ""
 
     def matrix(self, scale: float = 1.0) -> np.ndarray:
         """Camera matrix for an image resampled by ``scale`` (pixel centres at
@@ -82,14 +83,113 @@ class Camera:
 
 
 @dataclass(frozen=True)
+class Cylinder:
+    """``[cylinder]``: the sample cylinder, along the holder frame's y axis (mm)."""
+
+    radius_with_sample: float
+    sample_height: float                 # centred on the holder-frame origin
+    bottom: float                        # y where the cylinder enters the holder
+    top: float
+    radius_bare: float | None = None
+
+
+@dataclass(frozen=True)
+class HolderMarker:
+    """``[holder.marker]``: the white patch framed by a red square on the holder's front face."""
+
+    outer_width: float
+    outer_height: float
+    frame: float                         # width of the red frame
+    centre_y: float
+    #: Lambertian albedo of the white patch; None: the exposure planner's default
+    #: (:data:`glossrig.core.radiometry.exposure_plan.WHITE_PATCH_ALBEDO`)
+    white_albedo: float | None = None
+
+
+@dataclass(frozen=True)
+class Holder:
+    """``[holder]``: the box the cylinder is plugged into (mm); its front face is the marker plane z = depth / 2."""
+
+    width: float                         # along x
+    height: float                        # along y
+    depth: float                         # along z
+    top: float                           # y of the top face
+    marker: HolderMarker
+
+
+@dataclass(frozen=True)
+class CylinderMarkers:
+    """``[cylinder_markers]``: ``count`` red squares of side ``side`` on a white paper band (mm)."""
+
+    side: float
+    count: int
+    centre_height: float
+    band_bottom: float
+    band_top: float
+    paper_thickness: float = 0.0
+
+
+@dataclass(frozen=True)
+class Lighting:
+    """``[leds]`` apart from its table (which is :attr:`Rig.leds`)."""
+
+    distance_from_axis: float
+    row_offset: float
+    radiant_intensity_W_sr: float        # twin's and design tools' radiometric scale
+    housing_radius: float = 4.0          # LED housing (twin's shadows)
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """``[sensor]``: the photon-transfer figures (twin's sensor, HDR weighting, design noise)."""
+
+    electrons_per_dn_iso100: float       # conversion gain at ISO 100 (e-/DN), scales as 100 / ISO
+    read_noise_e: float
+    dark_current_e_s: float
+    full_well_e: float
+    electrons_per_radiance_s_f11: tuple[float, float, float]   # R, G, B at f/11
+
+
+@dataclass(frozen=True)
+class Checkerboard:
+    """``[checkerboard]``: the intrinsics target."""
+
+    inner_corners: tuple[int, int]
+    square: float                        # mm
+
+
+@dataclass(frozen=True)
+class Reference:
+    """``[reference]`` (optional): the diffuse reference sample."""
+
+    material: str
+    assumed_albedo: float
+
+
+@dataclass(frozen=True)
+class CaptureTiming:
+    """``[capture]`` (optional): timing of a real capture."""
+
+    #: seconds per shot beyond the exposure; None: the capture plan's default
+    overhead_s_per_shot: float | None = None
+
+
+@dataclass(frozen=True)
 class Rig:
+    """A validated rig file: every section as attributes (read these, not :attr:`raw`)."""
+
     path: str
     name: str
+    #: the parsed file as read, only to compare whole rig files (extract's reference check)
     raw: dict = field(repr=False)
-    cylinder_radius: float
-    sample_height: float
+    cylinder: Cylinder
+    holder: Holder
+    cylinder_markers: CylinderMarkers
+    lighting: Lighting
     leds: tuple[Led, ...]
     camera: Camera
+    sensor: Sensor
+    # [exposures]
     exposure_times_s: tuple[float, ...]
     sequence_iso: int
     sequence_aperture: float
@@ -97,6 +197,20 @@ class Rig:
     calibration_aperture: float
     calibration_time_s: float
     sample_rotations: tuple[float, ...]
+    sequences_per_led: int
+    checkerboard: Checkerboard
+    capture: CaptureTiming
+    reference: Reference | None
+    description: str = ""
+
+    @property
+    def cylinder_radius(self) -> float:
+        """Radius of the sample-wrapped cylinder (``cylinder.radius_with_sample``)."""
+        return self.cylinder.radius_with_sample
+
+    @property
+    def sample_height(self) -> float:
+        return self.cylinder.sample_height
 
     def led(self, led_id: int) -> Led:
         for led in self.leds:
@@ -128,29 +242,48 @@ class Rig:
             raise InputError(f"LEDs: duplicate ids in {spec!r}")
         return ids
 
-    def section(self, name: str) -> dict:
-        return _get(self.raw, name, self.path)
-
     def with_leds(self, leds: list[Led]) -> Rig:
         return replace(self, leds=tuple(leds))
 
 
-def _get(d: dict, key: str, path, kind=None):
+_REQUIRED = object()
+
+
+def _get(d: dict, key: str, path, kind=None, where: str = "", default=_REQUIRED):
+    """``d[key]`` (``where``: the section prefix, e.g. ``"camera."``, for the messages);
+    ``default`` when given and the key is absent."""
     if key not in d:
-        raise InputError(f"missing key {key!r}", path=path)
+        if default is not _REQUIRED:
+            return default
+        raise InputError(f"missing key {where + key!r}", path=path)
     v = d[key]
     if kind is not None and not isinstance(v, kind):
-        raise InputError(f"key {key!r} must be {getattr(kind, '__name__', kind)}, got {type(v).__name__}", path=path)
+        raise InputError(f"key {where + key!r} must be {getattr(kind, '__name__', kind)}, got {type(v).__name__}",
+                         path=path)
     return v
 
 
-def _num(d: dict, key: str, path, lo=-math.inf, hi=math.inf, where="") -> float:
-    v = _get(d, key, path)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise InputError(f"{where}{key} must be a number, got {v!r}", path=path)
-    if not (lo <= v <= hi):
-        raise InputError(f"{where}{key}={v} outside [{lo}, {hi}]", path=path)
-    return float(v)
+def _num(d: dict, key: str, path, lo=-math.inf, hi=math.inf, where="", default=_REQUIRED, **kw):
+    """The number ``d[key]`` checked by :func:`check_number` (``kw``: its ``lo_open``,
+    ``hi_open``, ``integer``); ``default`` when given and the key is absent."""
+    if key not in d and default is not _REQUIRED:
+        return default
+    return check_number(_get(d, key, path, where=where), where + key, path, lo=lo, hi=hi, **kw)
+
+
+def _nums(d: dict, key: str, path, n: int | None, where: str, what: str = "", **kw) -> tuple:
+    """The list ``d[key]`` of ``n`` numbers (any count when None), each checked by :func:`check_number`."""
+    v = _get(d, key, path, list, where)
+    if n is not None and len(v) != n:
+        raise InputError(f"{where}{key} must hold {what or f'{n} values'}, got {v!r}", path=path)
+    return tuple(check_number(x, f"{where}{key}[{i}]", path, **kw) for i, x in enumerate(v))
+
+
+def _str(d: dict, key: str, path, where: str, default=_REQUIRED) -> str:
+    v = _get(d, key, path, where=where, default=default)
+    if not isinstance(v, str):
+        raise InputError(f"{where}{key} must be a string, got {v!r}", path=path)
+    return v
 
 
 def led_position(angle_deg: float, row: str, distance: float, row_offset: float) -> tuple[float, float, float]:
@@ -158,82 +291,158 @@ def led_position(angle_deg: float, row: str, distance: float, row_offset: float)
     return (distance * math.sin(a), ROWS[row] * row_offset, distance * math.cos(a))
 
 
-def load_rig(path: str | Path) -> Rig:
-    """Load and validate a rig TOML file. A relative ``path`` is looked for in the current
-    folder, then among the packaged scenes (:func:`glossrig.core.resources.resolve_input`:
-    ``scenes/thesis_rig.toml`` and ``thesis_rig.toml`` load from any folder)."""
-    path = resolve_input(path, "rig file")
-    raw = read_toml(path, "rig file")
-    p = str(path)
-    cyl = _get(raw, "cylinder", p, dict)
-    radius = _num(cyl, "radius_with_sample", p, 1, 500, "cylinder.")
-    height = _num(cyl, "sample_height", p, 1, 1000, "cylinder.")
+def _section(raw: dict, name: str, path, optional: bool = False) -> dict:
+    """The table ``[name]`` of the rig file (``{}`` when ``optional`` and absent)."""
+    return _get(raw, name, path, dict, default={} if optional else _REQUIRED)
 
-    leds_sec = _get(raw, "leds", p, dict)
-    dist = _num(leds_sec, "distance_from_axis", p, radius + 1, 5000, "leds.")
-    row_off = _num(leds_sec, "row_offset", p, 0, 500, "leds.")
-    table = _get(leds_sec, "table", p, list)
+
+def _cylinder(raw: dict, p: str) -> Cylinder:
+    cyl, w = _section(raw, "cylinder", p), "cylinder."
+    return Cylinder(radius_with_sample=_num(cyl, "radius_with_sample", p, 1, 500, w),
+                    sample_height=_num(cyl, "sample_height", p, 1, 1000, w),
+                    bottom=_num(cyl, "bottom", p, -1000, 1000, w), top=_num(cyl, "top", p, -1000, 1000, w),
+                    radius_bare=_num(cyl, "radius_bare", p, 1, 500, w, default=None))
+
+
+def _holder(raw: dict, p: str) -> Holder:
+    h, w = _section(raw, "holder", p), "holder."
+    m, wm = _get(h, "marker", p, dict, w), "holder.marker."
+    marker = HolderMarker(outer_width=_num(m, "outer_width", p, 0, 1000, wm, lo_open=True),
+                          outer_height=_num(m, "outer_height", p, 0, 1000, wm, lo_open=True),
+                          frame=_num(m, "frame", p, 0, 500, wm), centre_y=_num(m, "centre_y", p, -1000, 1000, wm),
+                          white_albedo=_num(m, "white_albedo", p, 0, 1, wm, default=None, lo_open=True))
+    return Holder(width=_num(h, "width", p, 0, 1000, w, lo_open=True),
+                  height=_num(h, "height", p, 0, 1000, w, lo_open=True),
+                  depth=_num(h, "depth", p, 0, 1000, w, lo_open=True), top=_num(h, "top", p, -1000, 1000, w),
+                  marker=marker)
+
+
+def _cylinder_markers(raw: dict, p: str) -> CylinderMarkers:
+    cm, w = _section(raw, "cylinder_markers", p), "cylinder_markers."
+    return CylinderMarkers(side=_num(cm, "side", p, 0, 1000, w, lo_open=True),
+                           count=_num(cm, "count", p, 1, 100, w, integer=True),
+                           centre_height=_num(cm, "centre_height", p, -1000, 1000, w),
+                           band_bottom=_num(cm, "band_bottom", p, -1000, 1000, w),
+                           band_top=_num(cm, "band_top", p, -1000, 1000, w),
+                           paper_thickness=_num(cm, "paper_thickness", p, 0, 10, w, default=0.0))
+
+
+def _leds(raw: dict, p: str, radius: float) -> tuple[Lighting, tuple[Led, ...]]:
+    sec = _section(raw, "leds", p)
+    lighting = Lighting(distance_from_axis=_num(sec, "distance_from_axis", p, radius + 1, 5000, "leds."),
+                        row_offset=_num(sec, "row_offset", p, 0, 500, "leds."),
+                        radiant_intensity_W_sr=_num(sec, "radiant_intensity_W_sr", p, 0, lo_open=True,
+                                                    where="leds."),
+                        housing_radius=_num(sec, "housing_radius", p, 0, 100, "leds.", default=4.0, lo_open=True))
     leds = []
-    for i, e in enumerate(table):
+    for i, e in enumerate(_get(sec, "table", p, list, "leds.")):
         w = f"leds.table[{i}]."
-        for k in ("id", "row", "angle", "channel", "name"):
-            _get(e, k, p)
-        if e["row"] not in ROWS:
-            raise InputError(f"{w}row must be one of {sorted(ROWS)}, got {e['row']!r}", path=p)
+        if not isinstance(e, dict):
+            raise InputError(f"{w[:-1]} must be a table {{ id = ..., row = ..., ... }}, got {e!r}", path=p)
+        row = _get(e, "row", p, where=w)
+        if not isinstance(row, str) or row not in ROWS:
+            raise InputError(f"{w}row must be one of {sorted(ROWS)}, got {row!r}", path=p)
         angle = _num(e, "angle", p, -180, 180, w)
-        if "distance" in e:
-            d = _num(e, "distance", p, radius + 1, 5000, w)
-        else:
-            d = dist
-        pos = led_position(angle, e["row"], d, row_off)
+        d = _num(e, "distance", p, radius + 1, 5000, w, default=lighting.distance_from_axis)
+        pos = led_position(angle, row, d, lighting.row_offset)
         if "height" in e:
             pos = (pos[0], _num(e, "height", p, -500, 500, w), pos[2])
-        leds.append(Led(id=int(e["id"]), row=e["row"], angle_deg=angle, channel=int(e["channel"]),
-                        name=str(e["name"]), gpio=int(e.get("gpio", -1)), position=pos))
+        leds.append(Led(id=_num(e, "id", p, 0, where=w, integer=True), row=row, angle_deg=angle,
+                        channel=_num(e, "channel", p, 1, where=w, integer=True), name=str(_get(e, "name", p, where=w)),
+                        gpio=_num(e, "gpio", p, 0, where=w, integer=True, default=-1), position=pos))
     ids = [led.id for led in leds]
     if len(set(ids)) != len(ids):
         raise InputError("leds.table: duplicate LED ids", path=p)
     chans = [led.channel for led in leds]
     if len(set(chans)) != len(chans):
         raise InputError("leds.table: duplicate relay channels", path=p)
+    return lighting, tuple(leds)
 
-    cam = _get(raw, "camera", p, dict)
-    img = _get(cam, "image_px", p, list)
-    dist_coeffs = tuple(float(x) for x in _get(cam, "distortion", p, list))
+
+def _camera(raw: dict, p: str, radius: float) -> Camera:
+    cam, w = _section(raw, "camera", p), "camera."
+    img = _nums(cam, "image_px", p, 2, w, "2 values (width, height)", lo=2, integer=True)
+    dist_coeffs = _nums(cam, "distortion", p, None, w)
     if len(dist_coeffs) != 5:
         raise InputError("camera.distortion must hold 5 coefficients (k1 k2 p1 p2 k3)", path=p)
-    cfa = str(_get(cam, "cfa", p))
+    cfa = str(_get(cam, "cfa", p, where=w))
     if sorted(cfa) != sorted("RGGB"):
         raise InputError(f"camera.cfa must be a 2x2 Bayer pattern such as RGGB, got {cfa!r}", path=p)
-    bits = int(_num(cam, "bits", p, 8, 16, "camera."))
-    white = int(_num(cam, "white_level", p, 1, 2 ** bits - 1, "camera."))
-    black = tuple(int(x) for x in _get(cam, "black_level", p, list))
+    bits = int(_num(cam, "bits", p, 8, 16, w))
+    white = int(_num(cam, "white_level", p, 1, 2 ** bits - 1, w))
+    black = tuple(int(x) for x in _nums(cam, "black_level", p, None, w))
     if len(black) != 4 or any(not (0 <= b < white) for b in black):
         raise InputError("camera.black_level must hold 4 values in [0, white_level)", path=p)
-    camera = Camera(
-        model=str(cam.get("model", "camera")), image_px=(int(img[0]), int(img[1])),
-        sensor_mm=tuple(float(x) for x in _get(cam, "sensor_mm", p, list)),
-        fx=_num(cam, "fx", p, 1, 1e6, "camera."), fy=_num(cam, "fy", p, 1, 1e6, "camera."),
-        cx=_num(cam, "cx", p, 0, img[0], "camera."), cy=_num(cam, "cy", p, 0, img[1], "camera."),
+    return Camera(
+        model=str(cam.get("model", "camera")), image_px=img,
+        sensor_mm=_nums(cam, "sensor_mm", p, 2, w, "2 values (width, height)", lo=0, lo_open=True),
+        fx=_num(cam, "fx", p, 1, 1e6, w), fy=_num(cam, "fy", p, 1, 1e6, w),
+        cx=_num(cam, "cx", p, 0, img[0], w), cy=_num(cam, "cy", p, 0, img[1], w),
         distortion=dist_coeffs, cfa=cfa, bits=bits, white_level=white, black_level=black,
-        distance_to_axis=_num(cam, "distance_to_axis", p, radius + 1, 1e5, "camera."),
-        roll_deg=_num(cam, "roll", p, -180, 180, "camera."))
+        distance_to_axis=_num(cam, "distance_to_axis", p, radius + 1, 1e5, w),
+        roll_deg=_num(cam, "roll", p, -180, 180, w), lens=str(cam.get("lens", "")))
 
-    ex = _get(raw, "exposures", p, dict)
-    times = tuple(float(t) for t in _get(ex, "sequence_times_s", p, list))
+
+def _sensor(raw: dict, p: str) -> Sensor:
+    sen, w = _section(raw, "sensor", p), "sensor."
+    return Sensor(electrons_per_dn_iso100=_num(sen, "electrons_per_dn_iso100", p, 0, where=w, lo_open=True),
+                  read_noise_e=_num(sen, "read_noise_e", p, 0, where=w),
+                  dark_current_e_s=_num(sen, "dark_current_e_s", p, 0, where=w),
+                  full_well_e=_num(sen, "full_well_e", p, 0, where=w, lo_open=True),
+                  electrons_per_radiance_s_f11=_nums(sen, "electrons_per_radiance_s_f11", p, 3, w,
+                                                     "3 positive numbers (R, G, B)", lo=0, lo_open=True))
+
+
+def _checkerboard(raw: dict, p: str) -> Checkerboard:
+    cb, w = _section(raw, "checkerboard", p), "checkerboard."
+    return Checkerboard(inner_corners=_nums(cb, "inner_corners", p, 2, w, "2 counts", lo=2, integer=True),
+                        square=_num(cb, "square", p, 0, 1000, w, lo_open=True))
+
+
+def _reference(raw: dict, p: str) -> Reference | None:
+    ref, w = _section(raw, "reference", p, optional=True), "reference."
+    if not ref:
+        return None
+    return Reference(material=_str(ref, "material", p, w),
+                     assumed_albedo=_num(ref, "assumed_albedo", p, 0, 1, w, lo_open=True))
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Load and validate a rig TOML file. A relative ``path`` is looked for in the current
+    folder, then among the packaged scenes (:func:`glossrig.core.resources.resolve_input`:
+    ``scenes/thesis_rig.toml`` and ``thesis_rig.toml`` load from any folder).
+
+    Every section is read and checked here, once (numbers by :func:`check_number`), into
+    the attributes of :class:`Rig`; errors name the file and the key."""
+    path = resolve_input(path, "rig file")
+    raw = read_toml(path, "rig file")
+    p = str(path)
+    cylinder = _cylinder(raw, p)
+    radius = cylinder.radius_with_sample
+    lighting, leds = _leds(raw, p, radius)
+    camera = _camera(raw, p, radius)
+
+    ex, w = _section(raw, "exposures", p), "exposures."
+    times = _nums(ex, "sequence_times_s", p, None, w)
     if not times or any(t <= 0 for t in times) or list(times) != sorted(times):
         raise InputError("exposures.sequence_times_s must be positive and increasing", path=p)
-    for sec in ("holder", "cylinder_markers", "sensor"):
-        _get(raw, sec, p, dict)
+    capture = _section(raw, "capture", p, optional=True)
     return Rig(
-        path=p, name=str(raw.get("name", path.stem)), raw=raw, cylinder_radius=radius, sample_height=height,
-        leds=tuple(leds), camera=camera, exposure_times_s=times,
-        sequence_iso=int(_num(ex, "sequence_iso", p, 50, 204800, "exposures.")),
-        sequence_aperture=_num(ex, "sequence_aperture", p, 0.5, 64, "exposures."),
-        calibration_iso=int(_num(ex, "calibration_iso", p, 50, 204800, "exposures.")),
-        calibration_aperture=_num(ex, "calibration_aperture", p, 0.5, 64, "exposures."),
-        calibration_time_s=_num(ex, "calibration_time_s", p, 1e-5, 3600, "exposures."),
-        sample_rotations=tuple(float(r) for r in ex.get("sample_rotations", [0.0])),
+        path=p, name=str(raw.get("name", path.stem)), raw=raw, cylinder=cylinder, holder=_holder(raw, p),
+        cylinder_markers=_cylinder_markers(raw, p), lighting=lighting, leds=leds, camera=camera,
+        sensor=_sensor(raw, p), exposure_times_s=times,
+        sequence_iso=int(_num(ex, "sequence_iso", p, 50, 204800, w)),
+        sequence_aperture=_num(ex, "sequence_aperture", p, 0.5, 64, w),
+        calibration_iso=int(_num(ex, "calibration_iso", p, 50, 204800, w)),
+        calibration_aperture=_num(ex, "calibration_aperture", p, 0.5, 64, w),
+        calibration_time_s=_num(ex, "calibration_time_s", p, 1e-5, 3600, w),
+        sample_rotations=(_nums(ex, "sample_rotations", p, None, w, lo=-360, hi=360)
+                          if "sample_rotations" in ex else (0.0,)),
+        sequences_per_led=_num(ex, "sequences_per_led", p, 1, where=w, integer=True, default=1),
+        checkerboard=_checkerboard(raw, p),
+        capture=CaptureTiming(overhead_s_per_shot=_num(capture, "overhead_s_per_shot", p, 0, where="capture.",
+                                                       default=None)),
+        reference=_reference(raw, p), description=str(raw.get("description", "")),
     )
 
 

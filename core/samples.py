@@ -10,7 +10,8 @@ phi_in, phi_out             float64   azimuth from the tangent, counter-clockwis
 theta_h, phi_h              float64   half vector (thesis 4.3.5, eq. 4.64-4.72 corrected
                                       in :mod:`glossrig.core.models.angles`)
 theta_d, phi_d              float64   Rusinkiewicz difference angles (EGWR 1998)
-r, g, b                     float64   BRDF value per colour channel, 1/sr (thesis eq. 4.78)
+r, g, b                     float64   BRDF value per colour channel, 1/sr (thesis eq. 4.78);
+                                      NaN = that channel is missing for the row (below)
 weight                      float64   relative statistical weight of the row, >= 0; taken
                                       as proportional to 1 / variance of its BRDF value
                                       (1 everywhere when unknown; 0 drops the row)
@@ -24,6 +25,24 @@ y = bitangent, z = normal). BRDF values must be finite but may be slightly
 negative: after black-level subtraction the noise of dark pixels is zero-mean,
 and dropping or clamping the negative values would bias the diffuse level.
 Both directions must lie strictly above the surface (theta < pi/2).
+
+**Missing channels (per-channel validity).** A colour channel that has no valid HDR
+value for a row - too dark even at the longest exposure, saturated even at the
+shortest (:data:`glossrig.core.radiometry.hdr.STATUS_REASONS`), in the sample or in the
+reference capture - is NaN in that row; the row keeps its other channels. A missing
+channel is never a reason to drop the others: a strongly coloured material has one
+channel below the noise over most of the sample, and dropping whole rows would keep only
+the highlight (issue 14). So: ``r, g, b`` are finite or NaN (never infinite), and every
+row has at least one finite channel. :func:`valid_channels` gives the mask. Whoever
+reads the table uses each channel on its finite rows only (``glossrig fit``:
+:func:`glossrig.core.fitting.fit.fit_samples`, which also says how luminance is formed
+where a channel is missing); ``np.nanmean`` and the like, not ``mean``.
+
+Optional per-channel weights ``weight_r, weight_g, weight_b`` (float64, >= 0; NaN where
+the channel is missing), written by ``glossrig extract``: the inverse variance of that
+channel's value, on the scale of ``weight`` (which is their mean over the row's valid
+channels). A fit of one channel uses its own (:func:`channel_weight`); tables without
+them use ``weight`` for every channel.
 
 :func:`read_samples` and :func:`write_samples` check columns, dtypes, NaN/inf
 and ranges, and every error names the file and the column.
@@ -45,6 +64,8 @@ VALUE_COLUMNS = ("r", "g", "b")
 FLOAT_COLUMNS = ANGLE_COLUMNS + VALUE_COLUMNS + ("weight", "rotation")
 INT_COLUMNS = ("u", "v", "led")
 COLUMNS = ANGLE_COLUMNS + VALUE_COLUMNS + ("weight", "u", "v", "led", "rotation")
+#: optional per-channel weights (module docstring), in the order of VALUE_COLUMNS
+CHANNEL_WEIGHT_COLUMNS = tuple(f"weight_{c}" for c in VALUE_COLUMNS)
 # Rec. ITU-R BT.709 / sRGB luminance weights (linear RGB).
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 
@@ -68,6 +89,22 @@ def luminance(r, g, b) -> np.ndarray:
     of linear RGB values (ITU-R BT.709-6, item 3.2; IEC 61966-2-1)."""
     wr, wg, wb = LUMINANCE_WEIGHTS
     return wr * np.asarray(r, np.float64) + wg * np.asarray(g, np.float64) + wb * np.asarray(b, np.float64)
+
+
+def valid_channels(df) -> np.ndarray:
+    """(n, 3) bool: which of ``r, g, b`` each row has (finite; NaN = missing, see the
+    module docstring)."""
+    return np.isfinite(np.stack([np.asarray(df[c], np.float64) for c in VALUE_COLUMNS], axis=1))
+
+
+def channel_weight(df, channel: str) -> np.ndarray:
+    """The statistical weight of ``channel``'s values (``r``, ``g`` or ``b``): its own
+    ``weight_<channel>`` column where the table has one, else ``weight``; 0 where the
+    channel is missing, so that a fit of it can simply drop the zero-weight rows."""
+    col = f"weight_{channel}"
+    w = np.asarray(df[col] if col in df else df["weight"], np.float64)
+    ok = np.isfinite(np.asarray(df[channel], np.float64)) & np.isfinite(w)
+    return np.where(ok, w, 0.0)
 
 
 def _first_bad(mask: np.ndarray) -> str:
@@ -99,10 +136,25 @@ def validate_samples(df: pd.DataFrame, source: str | Path | None = None) -> pd.D
                 or pd.api.types.is_bool_dtype(s.dtype):
             fail(f"column {c!r} must be numeric (float), got dtype {s.dtype}")
         a = s.to_numpy(dtype=np.float64, na_value=np.nan)
-        bad = ~np.isfinite(a)
-        if bad.any():
-            fail(f"column {c!r} holds NaN or infinite values: {_first_bad(bad)}")
+        if c in VALUE_COLUMNS:          # NaN: the channel is missing in that row (module docstring)
+            bad = np.isinf(a)
+            if bad.any():
+                fail(f"column {c!r} holds infinite values: {_first_bad(bad)} (a missing channel is NaN)")
+        else:
+            bad = ~np.isfinite(a)
+            if bad.any():
+                fail(f"column {c!r} holds NaN or infinite values: {_first_bad(bad)}")
         out[c] = a
+    none = ~np.isfinite(np.stack([out[c] for c in VALUE_COLUMNS], axis=1)).any(axis=1)
+    if none.any():
+        fail(f"rows with no valid colour channel (r, g and b all NaN): {_first_bad(none)}; a row needs at least "
+             f"one channel")
+    for c, wc in zip(VALUE_COLUMNS, CHANNEL_WEIGHT_COLUMNS):
+        if wc in df.columns:
+            a = pd.to_numeric(df[wc], errors="coerce").to_numpy(dtype=np.float64, na_value=np.nan)
+            bad = np.isfinite(out[c]) & ~(np.isfinite(a) & (a >= 0))
+            if bad.any():
+                fail(f"column {wc!r} must be a finite weight >= 0 where {c!r} is valid: {_first_bad(bad)}")
     for c in INT_COLUMNS:
         s = df[c]
         if pd.api.types.is_bool_dtype(s.dtype):
@@ -207,7 +259,7 @@ def write_samples(df: pd.DataFrame, path: str | Path, *, overwrite: bool = True,
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from glossrig.core.capture import atomic_write_bytes
+    from glossrig.core.atomic import atomic_write_bytes
 
     path = Path(path)
     if path.exists() and not overwrite:

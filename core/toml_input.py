@@ -4,6 +4,7 @@ and the problem (design.md, "bad input")."""
 from __future__ import annotations
 
 import json
+import math
 import tomllib
 from pathlib import Path
 
@@ -45,3 +46,35 @@ def read_json(path: str | Path, what: str):
     invalid JSON (``"... is not readable JSON (reason)"``) likewise."""
     return _read_parsed(path, what, json.loads, json.JSONDecodeError, "{what} is not readable JSON ({e})",
                         "{what} is not readable JSON ({e})")
+
+
+def _bounds(lo: float, hi: float, lo_open: bool, hi_open: bool) -> str:
+    parts = []
+    if lo > -math.inf:
+        parts.append(f"{'>' if lo_open else '>='} {lo:g}")
+    if hi < math.inf:
+        parts.append(f"{'<' if hi_open else '<='} {hi:g}")
+    return " and ".join(parts)
+
+
+def check_number(value, key: str, path, *, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = False,
+                 hi_open: bool = False, integer: bool = False):
+    """``value``, read as ``key`` of the input file ``path``, as a float (an int with
+    ``integer``): the one number check of the project's input files (rig, capture plan).
+    A bool, a non-number (with ``integer``, a non-integer), NaN or infinity, or a value
+    outside ``[lo, hi]`` (``lo_open``/``hi_open``: the bound itself is excluded) raises
+    :class:`InputError` naming the file and the key, e.g. ``InputError("rig.toml:
+    camera.bits must be >= 8 and <= 16, got 20")`` or ``"... repeats must be an integer
+    >= 1, got 0"``."""
+    bounds = _bounds(lo, hi, lo_open, hi_open)
+    if integer:
+        if isinstance(value, bool) or not isinstance(value, int) or not (
+                (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)):
+            raise InputError(f"{key} must be an integer" + (f" {bounds}" if bounds else "") + f", got {value!r}",
+                             path=path)
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputError(f"{key} must be a number, got {value!r}", path=path)
+    if not ((value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)):
+        raise InputError(f"{key} must be {bounds}, got {value!r}", path=path)
+    return float(value)

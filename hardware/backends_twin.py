@@ -12,11 +12,11 @@ pipeline never reads.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from collections.abc import Iterable
 
-from glossrig.core.capture import TRUTH, atomic_write_json
+from glossrig.core.atomic import atomic_write_json
+from glossrig.core.capture import TRUTH, read_truth
 from glossrig.core.errors import InputError
 
 from .camera import ShotInfo, confirm_shot
@@ -101,10 +101,10 @@ class TwinCamera:
         if self._carried is None:
             self._carried = {}
             try:
-                old = json.loads((folder / TRUTH).read_text())
-                if isinstance(old, dict) and isinstance(old.get(_CLAMPED), dict):
+                old = read_truth(folder / TRUTH)
+                if isinstance(old.get(_CLAMPED), dict):
                     self._carried = dict(old[_CLAMPED])
-            except (OSError, ValueError):
+            except InputError:
                 pass
         truth = self.vr.truth()
         truth.update(self._truth_extra)
@@ -164,7 +164,7 @@ def make_twin_backends(plan: CapturePlan) -> tuple[TwinLights, TwinCamera, TwinO
         # no default: a twin that silently renders some other material than the plan's
         # sample writes a capture whose manifest lies about what it holds
         raise InputError("the twin backends need the material to render: the plan has no [twin] key 'material' "
-                         "(ward:..., lambert:ALBEDO, measured:PATH or a scenes/materials name; glossrig design "
+                         "(ward:..., lambert:ALBEDO, measured:PATH, mitsuba:FILE.xml or a scenes/materials name; glossrig design "
                          "exposures writes it)", path=plan.path)
     try:
         material = parse_material(str(t["material"]))

@@ -10,9 +10,10 @@ resume):
 * **Every raw file is durable before it is recorded.** The camera writes to a
   temporary name in the capture folder (``.NAME.part``); the file is fsynced, its
   sha256 computed, then it is published under its final name by a hard link (or a
-  rename after an existence check on file systems without links), which never
-  replaces an existing file; the folder is fsynced and only then the manifest
-  (``capture.json``, written atomically by :mod:`glossrig.core.capture`) gains the
+  rename after an existence check on file systems without links;
+  :func:`glossrig.core.atomic.publish`), which never replaces an existing file; the
+  folder is fsynced and only then the manifest (``capture.json``, written atomically
+  by :mod:`glossrig.core.atomic`) gains the
   entry with that checksum. A crash at any point leaves either a stale ``.part``
   (deleted on resume), a published file not yet in the manifest (set aside on
   resume, then retaken) or a recorded, checksummed file.
@@ -40,8 +41,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from glossrig.core.capture import MANIFEST, ImageEntry, Manifest, atomic_write_bytes, load_manifest, now_iso, \
-    sha256_file
+from glossrig.core.atomic import atomic_write_bytes, fsync_dir, fsync_file, publish
+from glossrig.core.capture import MANIFEST, ImageEntry, Manifest, load_manifest, now_iso, sha256_file
 from glossrig.core.errors import GlossrigError, InputError
 
 from .camera import Camera
@@ -68,35 +69,6 @@ class CaptureReport:
     kept: int = 0                     # good images found on resume
     set_aside: list[str] = field(default_factory=list)
     complete: bool = False
-
-
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-def _publish(tmp: Path, final: Path) -> None:
-    """Give the finished ``tmp`` its final name without ever replacing a file."""
-    try:
-        os.link(tmp, final)
-    except FileExistsError:
-        raise CaptureError(f"{final} appeared while shooting; refusing to overwrite it") from None
-    except OSError as e:
-        if e.errno not in (errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EXDEV, errno.EMLINK):
-            raise
-        if final.exists():
-            raise CaptureError(f"{final} appeared while shooting; refusing to overwrite it") from None
-        os.replace(tmp, final)
-        return
-    os.unlink(tmp)
 
 
 def _set_aside(folder: Path, name: str, why: str) -> str:
@@ -196,7 +168,7 @@ class CaptureRun:
         self.manifest = Manifest(folder=self.out, rig=RIG_COPY, material=self.plan.sample, images=[],
                                  complete=False, meta=meta)
         self.manifest.save()
-        _fsync_dir(self.out)
+        fsync_dir(self.out)
 
     def _resume_manifest(self) -> None:
         out = self.out
@@ -262,7 +234,7 @@ class CaptureRun:
         m.meta.setdefault("resumed", []).append(now_iso())
         self.manifest = m
         m.save()
-        _fsync_dir(out)
+        fsync_dir(out)
 
     def remaining(self) -> list[Shot]:
         done = {im.key() for im in self.manifest.images} if self.manifest else set()
@@ -293,20 +265,18 @@ class CaptureRun:
             announce(shot, self.schedule_s[shot.index])
         try:
             info = self.camera.capture(tmp)
-            fd = os.open(tmp, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+            fsync_file(tmp)
             digest = sha256_file(tmp)
-            _publish(tmp, final)
+            try:
+                publish(tmp, final, overwrite=False)      # fsyncs the folder too
+            except FileExistsError:
+                raise CaptureError(f"{final} appeared while shooting; refusing to overwrite it") from None
         except BaseException:
             try:
                 tmp.unlink()
             except FileNotFoundError:
                 pass
             raise
-        _fsync_dir(self.out)
         self._largest = max(self._largest, final.stat().st_size)
         extra = {"index": shot.index, "exposure_s_file": info.exposure_s, "iso_file": info.iso,
                  "aperture_file": info.aperture}
@@ -436,7 +406,7 @@ class CaptureRun:
             self.manifest.complete = True
             self.manifest.meta["finished"] = now_iso()
             self.manifest.save()
-            _fsync_dir(self.out)
+            fsync_dir(self.out)
         self.report.complete = not missing
         return self.report
 

@@ -33,6 +33,7 @@ from glossrig.core.capture import check_rotation_tags, image_stem, rotation_tag 
 from glossrig.core.errors import InputError
 from glossrig.core.resources import resolve_input
 from glossrig.core.rig import Rig, load_rig
+from glossrig.core.toml_input import check_number
 
 #: Thesis table 4.1 exposure sequence (s) and its sum (61.00725 s).
 THESIS_SEQUENCE_S = (0.00025, 0.0005, 0.001, 0.002, 0.004, 0.008, 0.0166, 0.0333, 0.0666, 0.125, 0.25, 0.5,
@@ -235,21 +236,11 @@ def _fail(msg: str, path) -> InputError:
 
 def _number(d: dict, key: str, path, *, lo: float = 0.0, lo_open: bool = True, hi: float = math.inf,
             where: str = "") -> float:
-    v = d[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise _fail(f"{where}{key} must be a number, got {v!r}", path)
-    if (v <= lo if lo_open else v < lo) or v > hi:
-        bound = f"> {lo:g}" if lo_open else f">= {lo:g}"
-        raise _fail(f"{where}{key} must be {bound}" + (f" and <= {hi:g}" if hi < math.inf else "") + f", got {v!r}",
-                    path)
-    return float(v)
+    return check_number(d[key], where + key, path, lo=lo, lo_open=lo_open, hi=hi)
 
 
 def _integer(d: dict, key: str, path, *, lo: int, where: str = "") -> int:
-    v = d[key]
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-        raise _fail(f"{where}{key} must be an integer >= {lo}, got {v!r}", path)
-    return v
+    return check_number(d[key], where + key, path, lo=lo, integer=True)
 
 
 def _exposures(v, path, key: str) -> tuple[float, ...]:
@@ -324,8 +315,7 @@ def load_plan(path: str | Path) -> CapturePlan:
     check_rotation_tags(rots, where=path)
 
     leds = _leds(rig, raw.get("leds", "middle"), path, "leds")
-    default_repeats = rig.raw.get("exposures", {}).get("sequences_per_led", 1)
-    repeats = _integer({"repeats": raw.get("repeats", default_repeats)}, "repeats", path, lo=1)
+    repeats = _integer({"repeats": raw.get("repeats", rig.sequences_per_led)}, "repeats", path, lo=1)
     ex = raw.get("exposures_s", "rig")
     exposures = tuple(rig.exposure_times_s) if ex == "rig" else _exposures(ex, path, "exposures_s")
     per_led = raw.get("led_exposures_s", {})
@@ -348,7 +338,8 @@ def load_plan(path: str | Path) -> CapturePlan:
     cal_exp = num("calibration_exposure_s", rig.calibration_time_s)
     cal_iso = int(num("calibration_iso", rig.calibration_iso, lo=1))
     cal_ap = num("calibration_aperture", rig.calibration_aperture, hi=128)
-    overhead = num("overhead_s_per_shot", rig.raw.get("capture", {}).get("overhead_s_per_shot", THESIS_OVERHEAD_S),
+    rig_overhead = rig.capture.overhead_s_per_shot
+    overhead = num("overhead_s_per_shot", THESIS_OVERHEAD_S if rig_overhead is None else rig_overhead,
                    lo=0.0, lo_open=False)
     settle = num("settle_s", 0.0, lo=0.0, lo_open=False, hi=600)
 

@@ -2,12 +2,16 @@
 the LLVM variant when libLLVM 19 is present and falls back to scalar_rgb otherwise."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-SHARED = ROOT.parent / "shared"
+# The shared data (thesis tables, RGL measured BRDFs), found as validation/paths.py finds
+# it: GLOSSRIG_SHARED, else shared/ beside the checkout. Tests that read it say so with
+# @pytest.mark.needs_shared("data/...") or, in a fixture or at import, require_shared().
+SHARED = Path(os.environ.get("GLOSSRIG_SHARED", ROOT.parent / "shared"))
 RIG = ROOT / "scenes" / "thesis_rig.toml"
 
 
@@ -18,6 +22,40 @@ def pytest_configure(config):
     error unless pytest-benchmark is installed: plain ``pytest`` runs the suite too."""
     if config.pluginmanager.hasplugin("benchmark"):
         config.option.benchmark_disable = True
+
+
+def missing_shared(*paths: str) -> str | None:
+    """The skip reason when one of ``paths`` (relative to SHARED) is absent, else None."""
+    for rel in paths or (".",):
+        if not (SHARED / rel).exists():
+            return f"shared data not found: {SHARED / rel} (set GLOSSRIG_SHARED to the shared/ folder)"
+    return None
+
+
+def require_shared(*paths: str) -> Path:
+    """SHARED / paths[0], skipping the calling test (from a test or fixture) when one of
+    ``paths`` is absent - the way for fixtures to say what @pytest.mark.needs_shared says."""
+    reason = missing_shared(*paths)
+    if reason:
+        pytest.skip(reason)
+    return SHARED / (paths[0] if paths else ".")
+
+
+SLOW_TIMEOUT_S = 7200    # tests marked slow (pyproject's timeout = 1800 is for the default suite)
+
+
+def pytest_collection_modifyitems(config, items):
+    """``needs_shared`` tests skip with the missing path as the reason; slow tests get
+    SLOW_TIMEOUT_S unless they carry their own ``timeout`` mark."""
+    timeouts = config.pluginmanager.hasplugin("timeout")
+    for item in items:
+        for m in item.iter_markers("needs_shared"):
+            reason = missing_shared(*m.args)
+            if reason:
+                item.add_marker(pytest.mark.skip(reason=reason))
+                break
+        if timeouts and item.get_closest_marker("slow") and not item.get_closest_marker("timeout"):
+            item.add_marker(pytest.mark.timeout(SLOW_TIMEOUT_S))
 
 
 @pytest.fixture(scope="session")

@@ -16,14 +16,16 @@ import cv2
 import numpy as np
 import pytest
 
-from glossrig.core.capture import load_manifest
+from glossrig.core.capture import load_manifest, read_truth
 from glossrig.core.errors import InputError
 from glossrig.core.calibration.intrinsics import CameraCalibration, load_camera, save_camera
 from glossrig.core.calibration.markers import cylinder_marker_corners, holder_marker_corners
 from glossrig.core.calibration.marker_detect import order_corners
-from glossrig.core.calibration.poses import (calibrate_capture, camera_in_holder, relative_to_holder, rotation_angle_deg)
+from glossrig.core.calibration.poses import (calibrate_capture, camera_in_holder, load_geometry, relative_to_holder,
+                                            rotation_angle_deg)
 
 from conftest import RIG
+from helpers import assert_image_has_content
 
 pytestmark = pytest.mark.mitsuba
 
@@ -60,7 +62,7 @@ def camera_json(checker_capture, tmp_path_factory) -> Path:
     plot = out.with_suffix(".png")
     assert main(["calibrate", "camera", str(checker_capture), "--out", str(out), "--plot", str(plot),
                  "--no-progress"]) == 0
-    assert plot.stat().st_size > 10_000
+    assert_image_has_content(plot, aspect=11 / 4.2, min_size=(800, 300))    # RMS bars | corner residuals
     return out
 
 
@@ -81,7 +83,7 @@ def geometry(sample_capture, true_camera_json):
 
 
 def _truth(capture: Path) -> dict:
-    return json.loads((capture / "truth.json").read_text())
+    return read_truth(capture)
 
 
 # -------------------------------------------------------------- intrinsics
@@ -161,7 +163,7 @@ def test_camera_file_validation(tmp_path, camera_json):
         "bad size": json.dumps(dict(good, image_size=[100])),
         "matrix disagrees": json.dumps(dict(good, fx=good["fx"] + 5)),
     }
-    expect = {"not json": "not valid JSON", "wrong format": "not a glossrig camera calibration",
+    expect = {"not json": "not readable JSON", "wrong format": "not a glossrig camera calibration",
               "negative fx": "fx must be > 0", "principal point outside": "camera_matrix disagrees|outside",
               "4 distortion terms": "5 finite numbers", "bad size": "image_size",
               "matrix disagrees": "camera_matrix disagrees"}
@@ -257,7 +259,7 @@ def test_calibrated_chain_through_the_cli(sample_capture, checker_capture, camer
     out, png = tmp_path / "geometry.json", tmp_path / "geometry.png"
     assert main(["calibrate", "geometry", str(sample_capture), "--camera", str(camera_json), "--out", str(out),
                  "--diagnostic", str(png)]) == 0
-    doc = json.loads(out.read_text())
+    doc = load_geometry(out)
     t = _truth(sample_capture)
     Rci, tci = np.array(t["cylinder_R_in_holder"]), np.array(t["cylinder_t_mm"])
     assert rotation_angle_deg(np.array(doc["cylinder_in_holder"]["R"]), Rci) < 0.3
@@ -265,6 +267,7 @@ def test_calibrated_chain_through_the_cli(sample_capture, checker_capture, camer
     img = cv2.imread(str(png))
     w, h = t["image_size"]
     assert img is not None and img.shape[1] == w and img.shape[0] > h
+    assert_image_has_content(png)
     assert main(["calibrate", "geometry", str(sample_capture), "--camera", str(camera_json), "--out",
                  str(out)]) == 2          # refuses to overwrite
 

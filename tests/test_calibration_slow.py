@@ -20,7 +20,7 @@ import pytest
 from glossrig.core.calibration.intrinsics import CameraCalibration, calibrate_intrinsics, save_camera
 from glossrig.core.calibration.poses import calibrate_capture, rotation_angle_deg
 
-from conftest import RIG
+from conftest import RIG, SHARED
 
 pytestmark = [pytest.mark.slow, pytest.mark.mitsuba]
 
@@ -72,10 +72,10 @@ def test_pose_targets_at_quarter_scale(captures, tmp_path):
     assert rotation_angle_deg(g["holder"]["corner_pnp"]["R"], Rh) > 5 * rotation_angle_deg(g["holder"]["R"], Rh)
 
 
-RGL_YELLOW = Path(__file__).resolve().parents[2] / "shared/data/rgl/vch_golden_yellow_rgb.bsdf"
+RGL_YELLOW = SHARED / "data/rgl/vch_golden_yellow_rgb.bsdf"
 
 
-@pytest.mark.skipif(not RGL_YELLOW.is_file(), reason="RGL measured BRDF not available")
+@pytest.mark.needs_shared("data/rgl/vch_golden_yellow_rgb.bsdf")
 def test_poses_with_a_saturated_yellow_sample(tmp_path):
     """The RGL vch_golden_yellow sample (measured BRDF) on the twin, scale 0.15: its
     highlight flanks are brighter than the white paper, and balancing on the brightest

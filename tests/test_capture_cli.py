@@ -40,16 +40,22 @@ def cli(*args, env_extra=None, **kw):
 
 
 def wait_for_images(out: Path, n: int, proc, timeout=30.0) -> None:
+    """Wait until the running capture ``proc`` has recorded ``n`` images in ``out``; fail
+    (killing it) if it exits first or after ``timeout`` seconds."""
     deadline = time.monotonic() + timeout
+    have = 0
     while time.monotonic() < deadline:
-        assert proc.poll() is None, proc.communicate()
+        assert proc.poll() is None, proc.communicate(timeout=10)
         try:
-            if len(load_manifest(out).images) >= n:
+            have = len(load_manifest(out).images)
+            if have >= n:
                 return
         except Exception:   # noqa: BLE001 - the folder may not exist yet
             pass
         time.sleep(0.02)
-    raise AssertionError("capture made no progress")
+    proc.kill()
+    _, err = proc.communicate(timeout=10)
+    raise AssertionError(f"capture made no progress: {have} of {n} images after {timeout:g} s\n{err[-2000:]}")
 
 
 def test_help_documents_the_plan_file(capsys):

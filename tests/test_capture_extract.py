@@ -57,4 +57,4 @@ def test_twin_capture_through_hardware_layer_is_extracted(tmp_path, rig):
     assert set(df.led.unique()) == {6, 9} and len(df) > 5000
     # a broad, weak lobe over rho_d = 0.3: the diffuse level comes back
     far = df.theta_h > np.radians(20)
-    assert np.median(df.g[far]) == pytest.approx(0.3 / np.pi, rel=0.05)
+    assert np.nanmedian(df.g[far]) == pytest.approx(0.3 / np.pi, rel=0.05)     # NaN: a missing channel

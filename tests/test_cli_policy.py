@@ -128,13 +128,22 @@ def test_force_passes_the_output_check(tmp_path, capsys, name):
         assert sorted(p.name for p in out.iterdir()) == ["a.dng", "capture.json", "truth.json"]
 
 
+def _manifest(out, source: str, files=()) -> None:
+    """A capture.json (written as every capture writes it) listing ``files``, made by ``source``."""
+    from glossrig.core.capture import ImageEntry, Manifest
+
+    images = [ImageEntry(file=f, role="calibration", leds=[], rotation=0.0, repeat=0, exposure_s=0.01, iso=100,
+                         aperture=8.0, time="2024-01-01T00:00:00+00:00", sha256="0" * 64) for f in files]
+    Manifest(folder=out, rig="rig.toml", material="x", images=images, meta={"source": source}).save()
+
+
 def test_simulate_force_clears_its_own_earlier_capture(tmp_path):
     from glossrig.cli.verbs.simulate import _clear_own_capture
 
     out = tmp_path / "cap"
     (out / "linear").mkdir(parents=True)
     (out / "linear" / "led01_r0.exr").write_bytes(b"x")
-    (out / "capture.json").write_text(json.dumps({"source": "glossrig twin", "images": [{"file": "a.dng"}]}))
+    _manifest(out, "glossrig twin", ["a.dng"])
     (out / "a.dng").write_bytes(b"x")
     (out / "truth.json").write_text("{}")
     (out / ".b.dng.123.part").write_bytes(b"x")
@@ -145,7 +154,7 @@ def test_simulate_force_clears_its_own_earlier_capture(tmp_path):
 def test_simulate_force_never_deletes_files_it_did_not_write(tmp_path, capsys):
     out = tmp_path / "cap"
     out.mkdir()
-    (out / "capture.json").write_text(json.dumps({"source": "glossrig twin", "images": [{"file": "a.dng"}]}))
+    _manifest(out, "glossrig twin", ["a.dng"])
     (out / "a.dng").write_bytes(b"x")
     (out / "notes.txt").write_text("mine")
     rig = ROOT / "scenes" / "thesis_rig.toml"
@@ -154,7 +163,7 @@ def test_simulate_force_never_deletes_files_it_did_not_write(tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == ["a.dng", "capture.json", "notes.txt"]
     real = tmp_path / "real"
     real.mkdir()
-    (real / "capture.json").write_text(json.dumps({"source": "camera", "images": []}))
+    _manifest(real, "camera")
     rc, err, _ = _run(capsys, ["simulate", "--rig", rig, "--out", real, "--force"])
     assert rc == 2 and "glossrig simulate" in err and (real / "capture.json").exists()
 

@@ -10,6 +10,8 @@ from glossrig.core.design import coverage as cov
 from glossrig.core.extraction.cylinder import sample_angles, surface_samples
 from glossrig.core.errors import InputError
 
+from helpers import assert_image_has_content
+
 SCALE = 0.06
 
 
@@ -188,8 +190,10 @@ def test_cli_coverage_writes_report(tmp_path):
     s = json.loads((out / "coverage.json").read_text())
     assert s["headline"]["leds"] == [5, 6, 7, 8, 9, 10, 11, 12]
     assert s["printed_pct"] == {"isotropic": 0.98, "anisotropic": 0.1}
-    for f in ("coverage.md", "conventions.csv", "theta_per_led.png", "aniso_by_rotation.png"):
+    for f in ("coverage.md", "conventions.csv"):
         assert (out / f).stat().st_size > 0
+    assert_image_has_content(out / "theta_per_led.png", aspect=6.4 / 6.0, min_size=(600, 600))
+    assert_image_has_content(out / "aniso_by_rotation.png", aspect=2 * 5.2 / 4.0, min_size=(1000, 400))   # 2 designs
     import pandas as pd
 
     df = pd.read_csv(out / "conventions.csv")

@@ -15,6 +15,8 @@ from glossrig.core.errors import InputError
 from glossrig.core.rig import load_rig
 from glossrig.core.models.ward import WardParams, ward_from_angles
 
+from helpers import assert_image_has_content
+
 BRUSHED = WardParams(rho_d=0.173, rho_s=0.045, alpha_x=0.0354, alpha_y=0.0106, lobe_rotation=2.19)
 BROAD = WardParams(rho_d=0.05, rho_s=0.3, alpha_x=0.25, alpha_y=0.12, lobe_rotation=0.4)
 
@@ -307,7 +309,7 @@ def test_write_rig_round_trip(rig, tmp_path):
     assert new.name == "optimised" and new.sample_rotations == (-30.0, 0.0, 60.0)
     np.testing.assert_allclose([led.position for led in new.leds], pos, atol=0.06)
     assert [led.channel for led in new.leds] == [1, 2, 3]
-    assert new.camera == rig.camera and new.raw["sensor"] == rig.raw["sensor"]
+    assert new.camera == rig.camera and new.sensor == rig.sensor
     with pytest.raises(InputError, match="overwrite the template"):
         D.write_rig_toml(rig.path, pos, [0], rig.path)
 
@@ -326,8 +328,11 @@ def test_cli_optimise_tiny(tmp_path):
     assert len(new.leds) == 3 and len(new.sample_rotations) == 2
     rep_json = json.loads((rep / "design.json").read_text())
     assert set(rep_json["rigs"]) == {"thesis_16", "thesis_middle", "optimised"}
-    for f in ("layout.png", "expected_errors.png", "aniso_by_rotation.png", "theta_per_led.png"):
-        assert (rep / f).stat().st_size > 0
+    # figsize width / height of each figure (core/design/plots.py, core/design/coverage.py)
+    aspects = {"layout.png": 12 / 5.5, "expected_errors.png": 4.5 / 4,            # one material
+               "aniso_by_rotation.png": 3 * 5.2 / 4.0, "theta_per_led.png": 6.4 / 6.0}   # three rigs
+    for f, aspect in aspects.items():
+        assert_image_has_content(rep / f, aspect=aspect, min_size=(400, 400))
     assert main(argv) == 2                           # exists: no overwrite without --force
 
 

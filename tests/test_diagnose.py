@@ -9,7 +9,6 @@ tolerance; null data must give no cause. The slow tests run the whole command on
 captures with effects hidden by rewriting the DNG raw values outside the twin."""
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 
@@ -270,7 +269,9 @@ def chain(tmp_path_factory):
 def _diagnose(chain, cap, out):
     glossrig("diagnose", cap, "--reference", chain / "ref", "--camera", chain / "camera.json", "--lamps",
              chain / "lamps.json", "--out", out, "--no-progress")
-    return json.loads((out / "report.json").read_text())
+    from glossrig.core.diagnose.report import read_report
+
+    return read_report(out)
 
 
 def _cause(rep, name):

@@ -11,8 +11,9 @@ from PIL import Image
 
 from glossrig.cli.main import main
 from glossrig.core.errors import InputError
-from glossrig.core.fabrication.etn import MODEL_KIND, Etn, load_etn
+from glossrig.core.reproduction.model import ETN, KIND as MODEL_KIND, load_etn
 from glossrig.core.fabrication.inputs import load_coverage_image, resample
+from glossrig.core.fabrication.pipeline import read_summary
 
 FILES = {"halftone.png", "toolpath.gcode", "preview.svg", "preview.png", "preview_render.png", "summary.json"}
 
@@ -43,7 +44,7 @@ def test_writes_the_five_files_and_a_constant_grey_hits_its_nearest_level(tmp_pa
     out = tmp_path / "out"
     rc, stdout, _ = _run(capsys, _grey(tmp_path, value), "--width-mm", 9.5, "--out", out)
     assert rc == 0 and set(p.name for p in out.iterdir()) == FILES
-    s = json.loads((out / "summary.json").read_text())
+    s = read_summary(out)
     ht = np.asarray(Image.open(out / "halftone.png"))
     assert ht.shape == tuple(s["grid"]) and set(np.unique(ht)) <= {0, 255}
     k = round(value / 255 * 42)
@@ -63,7 +64,7 @@ def test_svg_places_the_image_where_the_layout_puts_the_print(tmp_path, capsys):
 
     out = tmp_path / "o"
     assert _run(capsys, _grey(tmp_path, 128), "--width-mm", 5, "--out", out)[0] == 0
-    s = json.loads((out / "summary.json").read_text())
+    s = read_summary(out)
     layout = Layout.from_json(s["layout"])
     m = [float(v) for v in re.search(r'matrix\(([^)]*)\)', (out / "preview.svg").read_text()).group(1).split()]
     X = np.array([0.0, layout.cols, 0.0, layout.cols])
@@ -84,14 +85,14 @@ def test_rml_output(tmp_path, capsys):
 def test_model_applies_the_etn_before_halftoning(tmp_path, capsys):
     gamma = [0.9, 6.0, 1.0, 0.05]
     ce = 153 / 255
-    etn = Etn(tuple(gamma), "eq6.7")
+    etn = ETN(tuple(gamma), form="eq6.7")
     nominal = gamma[0] / ((gamma[2] + math.exp(-gamma[1] * ce)) + gamma[3])       # eq. 6.7 as printed
     assert etn(np.array(ce)) == pytest.approx(nominal)
     out = tmp_path / "m"
     rc, _, _ = _run(capsys, _grey(tmp_path, 153), "--width-mm", 7, "--out", out,
                     "--model", _model(tmp_path, gamma, form="eq6.7"))
     assert rc == 0
-    s = json.loads((out / "summary.json").read_text())
+    s = read_summary(out)
     k = round(nominal * 42)
     assert k != round(ce * 42)                                                 # the ETN changed the level
     assert s["coverage"]["achieved"] == pytest.approx(k / 42, abs=0)

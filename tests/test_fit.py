@@ -6,41 +6,22 @@ as in thesis 6.2) with multiplicative noise of a few percent.
 """
 from __future__ import annotations
 
-import functools
 import math
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from glossrig.core.extraction.cylinder import nominal_samples
 from glossrig.core.errors import InputError
 from glossrig.core.fitting.fit import (ALPHA_MIN, PARAM_NAMES, _internal, _make_data, _model, canonical, fit_samples,
                                fit_ward, peak_weight)
-from glossrig.core.models.materials import parse_material
-from glossrig.core.rig import default_rig_path, load_rig
 from glossrig.core.samples import LUMINANCE_WEIGHTS, ward_samples
 from glossrig.core.models.ward import ALPHA_MAX, WardParams, ward_from_angles
 
-TABLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "thesis" / "ward_params.csv"
-ROTATIONS = (-45, 0, 45, 90)
+from conftest import SHARED
+from helpers import geometry, material, noisy
 
-
-@functools.cache
-def geometry(scale: float = 0.05, leds: str = "middle", rotations=ROTATIONS) -> pd.DataFrame:
-    rig = load_rig(default_rig_path())
-    return nominal_samples(rig, rig.select_leds(leds), list(rotations), scale)
-
-
-def material(name: str) -> WardParams:
-    """Table 9.1 materials (thesis) and the repository's isotropic test material."""
-    return parse_material(name).ward
-
-
-def noisy(geo, p: WardParams, noise=0.03, seed=1):
-    f = ward_from_angles(geo["theta_in"], geo["theta_out"], geo["theta_h"], geo["phi_h"], p)
-    return f * (1 + noise * np.random.default_rng(seed).standard_normal(f.size))
+TABLE = SHARED / "data" / "thesis" / "ward_params.csv"
 
 
 def rot_error_deg(a, b):
@@ -60,7 +41,7 @@ def assert_recovered(fit_params: WardParams, truth: WardParams, check_rotation=T
         assert rot_error_deg(q.lobe_rotation, t.lobe_rotation) < 3.0, (q, t)
 
 
-@pytest.mark.skipif(not TABLE.exists(), reason="shared/data/thesis/ward_params.csv not beside the repository")
+@pytest.mark.needs_shared("data/thesis/ward_params.csv")
 def test_table_materials_match_the_thesis_csv():
     table = pd.read_csv(TABLE, comment="#").set_index("name")
     for name in ("sample_2_6", "sample_6_6", "brushed_original", "polyethylene", "sample_0_6"):

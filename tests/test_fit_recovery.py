@@ -14,7 +14,7 @@ import pytest
 from glossrig.core.fitting.fit import canonical, fit_ward, parameter_errors
 from glossrig.core.models.ward import WardParams, ward_from_angles
 
-from test_fit import geometry, material, noisy
+from helpers import geometry, material, noisy
 
 VALIDATION = Path(__file__).resolve().parents[1] / "validation"
 

@@ -29,6 +29,16 @@ def eventually(cond, timeout=2.0):
     return True
 
 
+def wait_until(cond, what: str, timeout=10.0, poll=0.001):
+    """Poll ``cond`` every ``poll`` seconds until it holds; fail naming ``what`` after
+    ``timeout`` seconds (a simulator or streaming thread that died must not hang the test)."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+        time.sleep(poll)
+
+
 def gcode(n_cuts: int) -> str:
     head = ["G21 G90 G94", "M5", "G0 Z0.5"]
     body = []
@@ -133,8 +143,7 @@ def test_grbl_stop_acts_at_once_from_another_thread():
 
         th = threading.Thread(target=run)
         th.start()
-        while len(sim.path) < 5:
-            time.sleep(0.005)
+        wait_until(lambda: len(sim.path) >= 5, "GRBL to execute 5 moves")
         t0 = time.monotonic()
         eng.stop()
         th.join(timeout=5)
@@ -173,8 +182,7 @@ def test_roland_position_follows_what_the_machine_has_taken():
         eng = RolandEngraver(sim.port, LIM, timeout_s=2.0, poll_s=0.01)
         th = threading.Thread(target=eng.stream, args=(rml(20),))
         th.start()
-        while len(sim.executed) < 12:
-            time.sleep(0.002)
+        wait_until(lambda: len(sim.executed) >= 12, "the Roland to execute 12 commands")
         pos = eng._pos
         th.join(timeout=10)
         # mid-stream the reported position is a point of the path, never ahead of the machine's buffer
@@ -216,8 +224,7 @@ def test_roland_stop_discards_the_buffer():
 
         th = threading.Thread(target=run)
         th.start()
-        while len(sim.executed) < 5:
-            time.sleep(0.002)
+        wait_until(lambda: len(sim.executed) >= 5, "the Roland to execute 5 commands")
         eng.stop()
         th.join(timeout=5)
         assert isinstance(errors[0], EngraverStopped)
@@ -253,8 +260,7 @@ def test_simulated_engraver_stops_at_once():
     eng = SimulatedEngraver(LIM, time_scale=0.01)
     th = threading.Thread(target=lambda: pytest.raises(EngraverStopped, eng.stream, gcode(100)))
     th.start()
-    while len(eng.path) < 3:
-        time.sleep(0.001)
+    wait_until(lambda: len(eng.path) >= 3, "the simulated engraver to make 3 moves")
     eng.stop()
     th.join(timeout=5)
     n = len(eng.path)

@@ -23,9 +23,11 @@ def test_wheel_installs_glossrig_with_its_scenes(wheel_install, tmp_path):
     core_file, scenes, version = r.stdout.split()
     assert Path(core_file).is_relative_to(w.site) and not Path(core_file).is_relative_to(ROOT), core_file
     assert Path(scenes) == w.site / "glossrig" / "scenes"
-    shipped = {p.relative_to(scenes).as_posix() for p in Path(scenes).rglob("*.toml")}
-    in_repo = {p.relative_to(ROOT / "scenes").as_posix() for p in (ROOT / "scenes").rglob("*.toml")}
+    data = ("*.toml", "*.xml")        # rigs, plans, materials; Mitsuba BSDF descriptions
+    shipped = {p.relative_to(scenes).as_posix() for g in data for p in Path(scenes).rglob(g)}
+    in_repo = {p.relative_to(ROOT / "scenes").as_posix() for g in data for p in (ROOT / "scenes").rglob(g)}
     assert shipped == in_repo and "materials/sample_2_6.toml" in shipped and "plans/twin_small.toml" in shipped
+    assert "materials/aniso_roughconductor_ggx.xml" in shipped
 
     assert w.run("glossrig", "--version", cwd=tmp_path).stdout.strip() == f"glossrig {version}"
     assert w.run(w.python, "-m", "glossrig", "--version", cwd=tmp_path).stdout.strip() == f"glossrig {version}"

@@ -242,9 +242,20 @@ def test_diagnose_refuses_captures_from_different_rigs(tmp_path):
 @pytest.mark.slow
 @pytest.mark.mitsuba
 def test_diagnose_refuses_a_fit_of_another_material(chain, tmp_path):  # noqa: F811 - the fixture imported below
-    """A fit that does not belong to the capture (white paper's Ward fit for a glossy sample)."""
-    fit = {"luminance": {"rho_d": 0.8, "rho_s": 0.001, "alpha_x": 0.4, "alpha_y": 0.35, "lobe_rotation": 0.0}}
-    (tmp_path / "fit.json").write_text(json.dumps(fit))
+    """A fit that does not belong to the capture (white paper's Ward fit for a glossy sample),
+    a valid fit.json made as ``glossrig fit`` makes one (so it is refused for its content)."""
+    from glossrig.core.extraction.cylinder import nominal_samples
+    from glossrig.core.fitting.export import read_fit_json, write_fit_json
+    from glossrig.core.fitting.fit import fit_samples
+    from glossrig.core.rig import load_rig
+    from glossrig.core.samples import ward_samples
+
+    paper = WardParams(rho_d=0.8, rho_s=0.001, alpha_x=0.4, alpha_y=0.35, lobe_rotation=0.0)
+    rig = load_rig(RIG)
+    geo = nominal_samples(rig, rig.select_leds("middle"), [-45, 0, 45, 90], 0.025)
+    write_fit_json(fit_samples(ward_samples(geo, paper, noise=0.01, seed=1), channels=["luminance"]),
+                   tmp_path / "fit.json")
+    assert read_fit_json(tmp_path / "fit.json").fits["luminance"].params.rho_d == pytest.approx(0.8, rel=0.05)
     res = _cli("diagnose", chain / "null", "--reference", chain / "ref", "--camera", chain / "camera.json",
                "--lamps", chain / "lamps.json", "--fit", tmp_path / "fit.json", "--out", tmp_path / "rep",
                "--no-progress")

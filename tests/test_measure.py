@@ -20,6 +20,7 @@ from glossrig.cli.main import main
 from glossrig.cli.verbs import measure
 
 from conftest import RIG, camera_json_from_truth, glossrig_cli
+from helpers import assert_image_has_content
 
 STEP_FUNCS = {"camera": "_calibrate_camera", "lamps": "_calibrate_lamps", "extract": "_extract", "fit": "_fit",
               "exports": "_exports", "renders": "_renders", "recovery": "_recovery", "report": "_report"}
@@ -81,7 +82,8 @@ def test_measure_writes_everything_and_redoes_exactly_what_changed(tiny_captures
         assert (out / f).is_file() and (out / f).stat().st_size > 0, f
     for f in EXPORTS:
         assert (out / "exports" / f).is_file() and (out / "exports" / f).stat().st_size > 0, f
-    assert (out / "renders" / "render_sphere.png").is_file() and (out / "renders" / "render_cloth.png").is_file()
+    for f in ("render_sphere.png", "render_cloth.png"):
+        assert_image_has_content(out / "renders" / f, min_size=(16, 16))        # --render-size 16
     fit = json.loads((out / "fit.json").read_text())
     gloss = fit["luminance"]["gloss"]              # glossrig.core.models.gloss of the luminance fit (issue 17)
     assert {"gu20", "gu60", "gu85", "haze", "doi"} <= set(gloss)

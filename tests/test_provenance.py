@@ -90,8 +90,11 @@ def test_fit_json_records_provenance_chain_and_labels_stderr_noise_only(table, t
     assert prov["inputs"]["samples"]["sha256"] == sha(src)
     assert prov["inputs"]["samples"]["resolved"] == str(src.resolve())
     assert prov["inputs"]["samples"]["provenance"] == upstream
-    assert prov["options"] == {"channels": ["luminance", "g"], "weighting": "none", "clip": 2.0,
-                               "clip_literal": False, "ignore_weight_column": False, "starts": 1, "seed": 0}
+    given = {"channels": ["luminance", "g"], "weighting": "none", "clip": 2.0,
+             "clip_literal": False, "ignore_weight_column": False, "starts": 1, "seed": 0}
+    assert {k: prov["options"].get(k) for k in given} == given
+    # the options of the footprint model and the uncertainty budget are recorded too (their defaults here)
+    assert {"footprint", "led_aperture", "calibration_draws", "camera", "lamps"} <= set(prov["options"])
     for c in ("luminance", "g"):
         assert js[c]["stderr_kind"].startswith("noise-only") and "calibration and model error" in js[c]["stderr_kind"]
         assert js[c]["rho_d_stderr"] > 0                                  # readers of <name>_stderr keep working

@@ -27,6 +27,7 @@ from PIL import Image
 from glossrig.core.errors import InputError
 
 from conftest import RIG
+from helpers import assert_image_has_content
 
 TRUTH = dict(rho_d=0.0518, rho_s=0.0069, alpha_x=0.0595, alpha_y=0.034, lobe_rotation=2.47)   # Table 9.1, 2/6
 EXPOSURES = (0.25, 0.5, 1.0, 2.0)
@@ -50,7 +51,8 @@ def true_rate(led: int) -> np.ndarray:
 def write_fake_capture(folder: Path, *, truth: bool = True) -> Path:
     """A capture folder (capture.json + DNGs) of LEDS x EXPOSURES at rotation 0 whose
     images are exactly ``true_rate * t`` (rounded to whole DN, clipped at the white level)."""
-    from glossrig.core.capture import ImageEntry, Manifest, atomic_write_json, image_stem
+    from glossrig.core.atomic import atomic_write_json
+    from glossrig.core.capture import ImageEntry, Manifest, image_stem
     from glossrig.core.rig import load_rig
     from glossrig.twin.dng import write_dng
 
@@ -141,8 +143,7 @@ def test_every_html_image_is_an_embedded_non_constant_png(report):
         im = Image.open(io.BytesIO(data))
         assert im.format == "PNG"
         assert im.size == (w, h)
-        a = np.asarray(im.convert("RGB"), float)
-        assert a.std() > 0, "a constant image"
+        assert_image_has_content(data)
     widths = sorted(w for _, w, _ in imgs)
     assert widths[-1] >= 1000 and sum(w >= 600 for w in widths) >= 8     # figures at a readable size
     assert "file:" not in text and "http://" not in text and "https://" not in text   # self-contained
@@ -154,7 +155,8 @@ def test_markdown_figures_exist_and_match_the_html(report):
     assert len(refs) == len(_imgs(report["html"].read_text()))
     for r in refs:
         p = report["out"] / r
-        assert p.is_file() and p.suffix == ".png", r
+        assert p.suffix == ".png", r
+        assert_image_has_content(p)          # figures, and the 40 px fake renders of the fixture
         assert not Path(r).is_absolute()
 
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,10 +15,12 @@ from glossrig.core.models.angles import brdf_angles, local_direction
 from glossrig.core.errors import InputError
 from glossrig.core.models.ward import WardParams, ward_from_angles
 
-ROOT = Path(__file__).resolve().parent.parent
-THESIS = ROOT.parent / "shared" / "data" / "thesis"
+from conftest import SHARED, require_shared
+
+THESIS = SHARED / "data" / "thesis"
 WARD_CSV = THESIS / "ward_params.csv"
 COV_CSV = THESIS / "coverages.csv"
+NEEDS_THESIS = pytest.mark.needs_shared("data/thesis/ward_params.csv", "data/thesis/coverages.csv")
 
 BASE1 = WardParams(0.0374, 0.0064, 0.035, 0.0492, 2.52)            # thesis sample 0/6
 BASE2 = WardParams(0.055, 0.026, 0.25, 0.029, 2.57)
@@ -46,6 +47,7 @@ def local_angles() -> R.AngleSet:
 
 @pytest.fixture(scope="module")
 def samples() -> R.SampleSet:
+    require_shared("data/thesis/ward_params.csv", "data/thesis/coverages.csv")
     return R.load_samples(WARD_CSV, COV_CSV)
 
 
@@ -186,6 +188,7 @@ GOOD_COV = "sample,nominal_b2\n0/6,0.0\n1/6,0.17\n3/6,0.5\n6/6,1.0\n"
     ("sample,nominal_b2,nominal_b1\n0/6,0.0,1.0\n1/6,0.17,0.5\n", "must be 1"),
     ('sample,nominal_b2\n"0/6,0.0\n', "not valid CSV"),
 ])
+@NEEDS_THESIS
 def test_bad_coverage_tables(tmp_path, cov, msg):
     p = _write(tmp_path, "cov.csv", cov)
     with pytest.raises(InputError) as e:
@@ -219,10 +222,10 @@ def test_too_few_samples(tmp_path, local_angles, samples):
 
 def test_model_json_rejects_foreign_files(tmp_path):
     p = _write(tmp_path, "m.json", json.dumps({"kind": "something else"}))
-    with pytest.raises(InputError, match="not a reproduction model"):
+    with pytest.raises(InputError, match="expected a reproduction model"):
         R.ReproductionModel.load(p)
     p = _write(tmp_path, "m2.json", "{not json")
-    with pytest.raises(InputError, match="not valid JSON"):
+    with pytest.raises(InputError, match="model file is not readable JSON"):
         R.ReproductionModel.load(p)
     p = _write(tmp_path, "m3.json", json.dumps({"kind": R.KIND, "etn": {"gamma": [1, 2]}}))
     with pytest.raises(InputError):
@@ -279,9 +282,7 @@ def test_model_roundtrip_and_prediction(detection, tmp_path, samples):
         assert b.nominal_b2 == pytest.approx(a.nominal_b2, abs=1e-6)
         assert b.gamut == "in"
     # the ETN the fabrication code reads from the same file (the contract of model.json)
-    from glossrig.core.fabrication.etn import load_etn
-
-    np.testing.assert_allclose(load_etn(path)(np.array([0.2, 0.6])), m.etn(np.array([0.2, 0.6])))
+    np.testing.assert_allclose(R.load_etn(path)(np.array([0.2, 0.6])), m.etn(np.array([0.2, 0.6])))
 
 
 def test_prediction_gamut(detection):

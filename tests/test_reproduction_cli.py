@@ -9,8 +9,11 @@ import pytest
 
 from glossrig.cli.main import main
 
-ROOT = Path(__file__).resolve().parent.parent
-THESIS = ROOT.parent / "shared" / "data" / "thesis"
+from conftest import SHARED
+
+pytestmark = pytest.mark.needs_shared("data/thesis/ward_params.csv", "data/thesis/coverages.csv")
+
+THESIS = SHARED / "data" / "thesis"
 WARD = str(THESIS / "ward_params.csv")
 COV = str(THESIS / "coverages.csv")
 FAST = ["--scale", "0.02", "--max-angles", "300", "--starts", "1"]
@@ -93,7 +96,7 @@ def test_bad_arguments_exit_nonzero(tmp_path, capsys, model_path):
     assert main(["model", "predict", "--model", str(model_path), "--ward", "rho_d=0.05,alpha_x=0.1"]) == 2
     assert "missing" in capsys.readouterr().err
     assert main(["model", "predict", "--model", WARD, "--ward", TARGET]) == 2
-    assert "not valid JSON" in capsys.readouterr().err
+    assert "model file is not readable JSON" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("ward,msg", [

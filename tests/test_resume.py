@@ -121,7 +121,8 @@ class FakeSteps:
             sample = Path(argv[1])
             label = json.loads((sample / "truth.json").read_text())["material"]["label"]
             (out / "fit.json").write_text(json.dumps({"luminance": WARD, "n": self.n}))
-            (out / "recovery.json").write_text(json.dumps({"material": {"label": label, "fitted": WARD}}))
+            (out / "recovery.json").write_text(json.dumps({"format": "glossrig-recovery/1",
+                                                           "material": {"label": label, "fitted": WARD}}))
         return 0
 
     def take(self):

@@ -57,7 +57,10 @@ def test_luminance_is_rec709():
 @pytest.mark.parametrize("mutate, message", [
     (lambda d: d.drop(columns=["g", "weight"]), "missing column.*g, weight"),
     (lambda d: d.iloc[:0], "empty"),
-    (lambda d: d.assign(r=np.where(np.arange(len(d)) == 7, np.nan, d["r"])), "'r'.*NaN.*row 7"),
+    (lambda d: d.assign(**{c: np.where(np.arange(len(d)) == 7, np.nan, d[c]) for c in "rgb"}),
+     "no valid colour channel.*row 7"),
+    (lambda d: d.assign(g=np.where(np.arange(len(d)) == 5, np.inf, d["g"])), "'g'.*infinite.*row 5"),
+    (lambda d: d.assign(weight_b=np.where(np.arange(len(d)) == 3, -1.0, 1.0)), "'weight_b'.*row 3"),
     (lambda d: d.assign(phi_h=np.where(np.arange(len(d)) == 2, np.inf, d["phi_h"])), "'phi_h'.*infinite"),
     (lambda d: d.assign(theta_in=np.where(np.arange(len(d)) == 4, math.pi / 2, d["theta_in"])),
      r"'theta_in' outside \[0, pi/2\).*row 4"),

@@ -41,13 +41,13 @@ def green(mosaic, cfa="RGGB"):
 
 
 def test_from_rig_reads_camera_and_sensor_sections(rig, sensor):
-    sec = rig.raw["sensor"]
+    sec = rig.sensor
     assert sensor.cfa == rig.camera.cfa == "RGGB"
     assert sensor.white_level == rig.camera.white_level == 15520
     assert sensor.black_level == tuple(rig.camera.black_level)
-    assert sensor.electrons_per_dn_iso100 == sec["electrons_per_dn_iso100"]
-    assert sensor.electrons_per_radiance_s_f11 == tuple(sec["electrons_per_radiance_s_f11"])
-    assert sensor.conversion_gain(320) == pytest.approx(sec["electrons_per_dn_iso100"] * 100 / 320)
+    assert sensor.electrons_per_dn_iso100 == sec.electrons_per_dn_iso100 == 2.2
+    assert sensor.electrons_per_radiance_s_f11 == sec.electrons_per_radiance_s_f11 == (6.0e4, 6.9e4, 5.2e4)
+    assert sensor.conversion_gain(320) == pytest.approx(sec.electrons_per_dn_iso100 * 100 / 320)
 
 
 def test_from_rig_rejects_a_bad_sensor_section(tmp_path):

@@ -10,11 +10,16 @@ from glossrig.core.models.ward import WardParams, ward_albedo, ward_local
 
 from conftest import SHARED
 
-pytestmark = pytest.mark.mitsuba
+TABLE = "data/thesis/ward_params.csv"
+pytestmark = [pytest.mark.mitsuba, pytest.mark.needs_shared(TABLE)]
 
 
 def table_materials():
-    rows = [r for r in csv.reader(l for l in open(SHARED / "data/thesis/ward_params.csv") if not l.startswith("#"))]
+    """Table 9.1 (thesis) from the shared data; empty where it is absent (read at collection:
+    the module's needs_shared mark then skips every test with the reason)."""
+    if not (SHARED / TABLE).is_file():
+        return {}
+    rows = [r for r in csv.reader(l for l in open(SHARED / TABLE) if not l.startswith("#"))]
     hdr = rows[0]
     out = {}
     for r in rows[1:]:
@@ -74,7 +79,7 @@ def test_plugin_reciprocity():
     np.testing.assert_allclose(f_io, f_oi, rtol=2e-4)
 
 
-@pytest.mark.parametrize("name", sorted(table_materials()))
+@pytest.mark.parametrize("name", sorted(table_materials()) or ["<Table 9.1 missing>"])
 def test_energy_table_9_1(name):
     """Directional albedo <= 1 (thesis eq. 2.4) for every Table 9.1 material, both by
     numpy quadrature and by the plugin's own importance sampling (mean sample weight)."""

@@ -23,17 +23,15 @@ gives the matching pair for a sensor with unequal channel sensitivities.
 The measurement pipeline never uses these tags (it works on raw CFA values);
 they only make the files render plausibly in raw viewers.
 
-Writes are atomic: the file is built under a temporary name in the target
-folder, fsynced and then linked/renamed into place, so a reader (or a crash)
-never sees half a file, and an existing file is never replaced unless
-``overwrite=True``.
+Writes are atomic (:func:`glossrig.core.atomic.atomic_write`): the file is built
+under a temporary name in the target folder, fsynced and then linked/renamed into
+place, so a reader (or a crash) never sees half a file, and an existing file is
+never replaced unless ``overwrite=True``.
 """
 from __future__ import annotations
 
-import errno
 import os
 import struct
-import tempfile
 from datetime import datetime
 from fractions import Fraction
 from pathlib import Path
@@ -41,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
+from glossrig.core.atomic import atomic_write
 from glossrig.core.capture import sha256_file
 from glossrig.core.calibration.demosaic import cfa_array
 from glossrig.core.errors import InputError
@@ -207,10 +206,7 @@ def write_dng(path: str | Path, mosaic: np.ndarray, *, cfa: str = "RGGB",
     ]
     exif = _exif_entries(float(exposure_s), float(iso), float(aperture), time)
 
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.name + ".", suffix=".part")
-    try:
-        os.fchmod(fd, 0o644)   # mkstemp's 0600 would hide captures from other users
-        os.close(fd)
+    def fill(tmp: Path) -> None:
         tifffile.imwrite(tmp, data, photometric=32803, byteorder="<", bigtiff=False, metadata=None,
                          software="glossrig twin", description=extra_description,
                          datetime=time.strftime("%Y:%m:%d %H:%M:%S"), extratags=extratags)
@@ -229,42 +225,9 @@ def write_dng(path: str | Path, mosaic: np.ndarray, *, cfa: str = "RGGB",
             f.write(struct.pack("<H", _TAG_EXIF_IFD))
             f.seek(pointer_at)
             f.write(struct.pack("<I", end))
-            f.flush()
-            os.fsync(f.fileno())
-        _publish(tmp, path, overwrite)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+
+    try:
+        atomic_write(path, fill, overwrite=overwrite)
+    except FileExistsError:
+        raise InputError("refusing to overwrite an existing file (pass overwrite=True)", path=path) from None
     return sha256_file(path)
-
-
-def _publish(tmp: str, path: Path, overwrite: bool) -> None:
-    """Move the finished temporary file into place atomically. Without
-    ``overwrite`` a hard link is used, which fails if ``path`` appeared in the
-    meantime, so a concurrent writer's file is never clobbered."""
-    if overwrite:
-        os.replace(tmp, path)
-    else:
-        try:
-            os.link(tmp, path)
-        except FileExistsError:
-            raise InputError("refusing to overwrite an existing file (pass overwrite=True)", path=path) from None
-        except OSError as e:
-            if e.errno not in (errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EXDEV):
-                raise
-            if path.exists():   # filesystem without hard links: check, then rename
-                raise InputError("refusing to overwrite an existing file (pass overwrite=True)", path=path) from None
-            os.replace(tmp, path)
-        else:
-            os.unlink(tmp)
-    try:
-        dfd = os.open(path.parent, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(dfd)
-    finally:
-        os.close(dfd)

@@ -14,9 +14,9 @@ from glossrig.core.calibration.markers import cylinder_marker_angles, cylinder_m
 
 def holder_box(rig, recess: float = 0.04) -> trimesh.Trimesh:
     """The holder; its front face ``recess`` mm behind the marker plane z = depth / 2."""
-    h = rig.section("holder")
-    box = trimesh.creation.box(extents=(h["width"], h["height"], h["depth"] - recess))
-    box.apply_translation((0.0, h["top"] - h["height"] / 2, -recess / 2))
+    h = rig.holder
+    box = trimesh.creation.box(extents=(h.width, h.height, h.depth - recess))
+    box.apply_translation((0.0, h.top - h.height / 2, -recess / 2))
     return box
 
 
@@ -54,14 +54,14 @@ def curved_patch(radius: float, a0: float, a1: float, y0: float, y1: float, segm
 
 
 def cylinder_marker_meshes(rig) -> list[trimesh.Trimesh]:
-    cm = rig.section("cylinder_markers")
+    cm = rig.cylinder_markers
     a = cylinder_marker_angles(rig)
-    y0 = cm["centre_height"] - cm["side"] / 2
-    y1 = cm["centre_height"] + cm["side"] / 2
+    y0 = cm.centre_height - cm.side / 2
+    y1 = cm.centre_height + cm.side / 2
     # The red squares lie exactly on the marker radius the pipeline assumes; the white
     # band is drawn just below it (twin.scene).
     r = cylinder_marker_radius(rig)
-    return [curved_patch(r, a[2 * k], a[2 * k + 1], y0, y1) for k in range(int(cm["count"]))]
+    return [curved_patch(r, a[2 * k], a[2 * k + 1], y0, y1) for k in range(cm.count)]
 
 
 def led_housing(position, radius: float = 4.0, length: float = 10.0, gap: float = 0.5) -> trimesh.Trimesh:

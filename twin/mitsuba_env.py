@@ -44,7 +44,8 @@ def mitsuba():
     if _mi is None:
         import mitsuba as mi
         mi.set_variant(choose_variant())
-        from . import ward_bsdf
+        from . import rotated_bsdf, ward_bsdf
         ward_bsdf.register()
+        rotated_bsdf.register()
         _mi = mi
     return _mi

@@ -15,13 +15,13 @@ manifest's checksums are updated. The stated black level is left unchanged.
 """
 from __future__ import annotations
 
-import json
 import shutil
 from datetime import datetime
 from pathlib import Path
 
 import numpy as np
 
+from glossrig.core.capture import load_manifest
 from glossrig.core.errors import InputError
 
 REWRITABLE = ("black_level_offset", "sensor_nonlinearity")
@@ -29,7 +29,6 @@ CFA_NAMES = {0: "R", 1: "G", 2: "B"}
 
 
 def rewrite_capture(src, dst, effect: str, value: float) -> Path:
-    from glossrig.core.calibration.raw import read_raw
     from .dng import write_dng
 
     if effect not in REWRITABLE:
@@ -38,12 +37,10 @@ def rewrite_capture(src, dst, effect: str, value: float) -> Path:
     if dst.exists():
         raise InputError("destination exists", path=dst)
     shutil.copytree(src, dst)
-    man = json.loads((dst / "capture.json").read_text())
-    for im in man["images"]:
-        if im["role"] != "sequence":
-            continue
-        p = dst / im["file"]
-        fr = read_raw(p, exposure_s=im["exposure_s"], iso=im["iso"], aperture=im["aperture"], sha256=im["sha256"])
+    man = load_manifest(dst)
+    for im in man.select("sequence"):
+        p = dst / im.file
+        fr = man.read_raw(im)
         dn = fr.mosaic.astype(np.float64)
         black = np.tile(np.asarray(fr.black, float).reshape(2, 2), (dn.shape[0] // 2 + 1, dn.shape[1] // 2 + 1))
         black = black[:dn.shape[0], :dn.shape[1]]
@@ -57,9 +54,9 @@ def rewrite_capture(src, dst, effect: str, value: float) -> Path:
             dn = np.where(dn >= fr.white, dn, black + x * (1.0 - value * np.maximum(x, 0) / (fr.white - black)))
         mosaic = np.clip(np.round(dn), 0, fr.white).astype(np.uint16)
         cfa = "".join(CFA_NAMES[int(c)] for c in np.asarray(fr.cfa).ravel())
-        im["sha256"] = write_dng(p, mosaic, cfa=cfa, black_level=tuple(int(b) for b in np.asarray(fr.black).ravel()),
-                                 white_level=int(fr.white), exposure_s=im["exposure_s"], iso=im["iso"],
-                                 aperture=im["aperture"], time=datetime.fromisoformat(im["time"]), overwrite=True)
-    man.setdefault("hidden_outside_twin", {})[effect] = value
-    (dst / "capture.json").write_text(json.dumps(man, indent=1))
+        im.sha256 = write_dng(p, mosaic, cfa=cfa, black_level=tuple(int(b) for b in np.asarray(fr.black).ravel()),
+                              white_level=int(fr.white), exposure_s=im.exposure_s, iso=im.iso,
+                              aperture=im.aperture, time=datetime.fromisoformat(im.time), overwrite=True)
+    man.meta.setdefault("hidden_outside_twin", {})[effect] = value
+    man.save()
     return dst

@@ -46,17 +46,29 @@ def _diffuse(value) -> dict:
     return {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(value)}}
 
 
+#: material kinds whose BSDF turns with the sample (``sample.bsdf.tangent_rotation``)
+ROTATING_KINDS = ("ward", "mitsuba")
+
+
 def material_bsdf(material: Material, tangent_rotation_rad: float = 0.0) -> dict:
-    """Mitsuba BSDF dict of a sample material (grey Ward parameters apply to R, G, B)."""
+    """Mitsuba BSDF dict of a sample material (grey Ward parameters apply to R, G, B,
+    a coloured one's per channel; a stock Mitsuba BSDF inside ``glossrig_rotated``).
+    ``tangent_rotation_rad``: the sample rotation, for the materials that turn with it
+    (:data:`ROTATING_KINDS`)."""
     if material.kind == "ward":
         w = material.ward
-        return {"type": "glossrig_ward", "rho_d": [w.rho_d] * 3, "rho_s": [w.rho_s] * 3,
+        rgb = material.rgb or {"rho_d": [w.rho_d] * 3, "rho_s": [w.rho_s] * 3}
+        return {"type": "glossrig_ward", "rho_d": list(rgb["rho_d"]), "rho_s": list(rgb["rho_s"]),
                 "alpha_x": w.alpha_x, "alpha_y": w.alpha_y, "lobe_rotation": w.lobe_rotation,
                 "tangent_rotation": tangent_rotation_rad}
     if material.kind == "lambert":
         return _diffuse(material.albedo)
     if material.kind == "measured":
         return {"type": "measured", "filename": material.path}
+    if material.kind == "mitsuba":
+        from .mitsuba_material import rotated_dict
+
+        return rotated_dict(material, tangent_rotation_rad)
     raise ValueError(material.kind)
 
 
@@ -104,10 +116,10 @@ def _camera_dict(spec: SceneSpec) -> dict:
 def sample_scene(rig, material: Material, spec: SceneSpec, workdir: Path, aov: bool = False):
     """Load the rig scene with ``material`` on the sample. Returns ``(scene, params)``;
     ``params['led.position']`` / ``params['led.intensity.value']`` move and scale the LED,
-    ``params['sample.bsdf.tangent_rotation']`` turns a Ward sample."""
+    ``params['sample.bsdf.tangent_rotation']`` turns a Ward or Mitsuba sample (:data:`ROTATING_KINDS`)."""
     mi = mitsuba()
-    cyl = rig.section("cylinder")
-    cm = rig.section("cylinder_markers")
+    cyl = rig.cylinder
+    cm = rig.cylinder_markers
     hs = rig.sample_height / 2
     r = spec.sample_radius
     red, white = geometry.holder_marker_meshes(rig)
@@ -116,12 +128,11 @@ def sample_scene(rig, material: Material, spec: SceneSpec, workdir: Path, aov: b
         "integrator": ({"type": "aov", "aovs": "pos:position,nn:sh_normal"} if aov else {"type": "direct"}),
         "camera": _camera_dict(spec),
         "sample": {"type": "cylinder", "to_world": _axis_to_world(r, -hs, hs), "bsdf": material_bsdf(material)},
-        "paper_low": {"type": "cylinder", "to_world": _axis_to_world(r, cyl["bottom"], -hs), "bsdf": _diffuse(BLACK_PAPER)},
-        "paper_mid": {"type": "cylinder", "to_world": _axis_to_world(r, hs, cm["band_bottom"]), "bsdf": _diffuse(BLACK_PAPER)},
-        "band": {"type": "cylinder", "to_world": _axis_to_world(cylinder_marker_radius(rig) - 0.02, cm["band_bottom"],
-                                                                 cm["band_top"]),
+        "paper_low": {"type": "cylinder", "to_world": _axis_to_world(r, cyl.bottom, -hs), "bsdf": _diffuse(BLACK_PAPER)},
+        "paper_mid": {"type": "cylinder", "to_world": _axis_to_world(r, hs, cm.band_bottom), "bsdf": _diffuse(BLACK_PAPER)},
+        "band": {"type": "cylinder", "to_world": _axis_to_world(cylinder_marker_radius(rig) - 0.02, cm.band_bottom, cm.band_top),
                  "bsdf": _diffuse(PAPER_WHITE)},
-        "paper_top": {"type": "cylinder", "to_world": _axis_to_world(r, cm["band_top"], cyl["top"]), "bsdf": _diffuse(BLACK_PAPER)},
+        "paper_top": {"type": "cylinder", "to_world": _axis_to_world(r, cm.band_top, cyl.top), "bsdf": _diffuse(BLACK_PAPER)},
         "holder": {"type": "ply", "filename": _ply(geometry.holder_box(rig), workdir, "holder"), "bsdf": _diffuse(BLACK_PLASTIC)},
         "holder_red": {"type": "ply", "filename": _ply(red, workdir, "holder_red"), "bsdf": _diffuse(MARKER_RED)},
         "holder_white": {"type": "ply", "filename": _ply(white, workdir, "holder_white"), "bsdf": _diffuse(PAPER_WHITE)},
@@ -129,7 +140,7 @@ def sample_scene(rig, material: Material, spec: SceneSpec, workdir: Path, aov: b
     }
     for k, m in enumerate(geometry.cylinder_marker_meshes(rig)):
         d[f"marker{k}"] = {"type": "ply", "filename": _ply(m, workdir, f"marker{k}"), "bsdf": _diffuse(MARKER_RED)}
-    housing_r = float(rig.section("leds").get("housing_radius", 4.0))
+    housing_r = rig.lighting.housing_radius
     for led_id, pos in spec.led_positions.items():
         d[f"housing{led_id}"] = {"type": "ply", "filename": _ply(geometry.led_housing(pos, housing_r), workdir, f"housing{led_id}"),
                                  "bsdf": _diffuse(BLACK_PLASTIC)}
@@ -146,8 +157,8 @@ def checkerboard_scene(rig, spec: SceneSpec, board_R: np.ndarray, board_t: np.nd
     frame. The texture is a tiny bitmap sampled with nearest filtering, so the
     square edges are exact."""
     mi = mitsuba()
-    nx, ny = rig.section("checkerboard")["inner_corners"]
-    sq = float(rig.section("checkerboard")["square"])
+    nx, ny = rig.checkerboard.inner_corners
+    sq = rig.checkerboard.square
     border = 1  # one white square around the pattern
     cols, rows = nx + 1 + 2 * border, ny + 1 + 2 * border
     tex = np.ones((rows, cols, 3), np.float32) * 0.85

@@ -134,17 +134,6 @@ class SensorEffect(Protocol):
     def post_dn(self, dn: np.ndarray, ctx: SensorContext) -> np.ndarray: ...
 
 
-def _positive(sec: dict, key: str, where: str, allow_zero: bool = False) -> float:
-    if key not in sec:
-        raise InputError(f"[sensor] lacks key {key!r}", path=where)
-    v = sec[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 \
-            or (v == 0 and not allow_zero):
-        raise InputError(f"sensor.{key} must be a {'non-negative' if allow_zero else 'positive'} number, got {v!r}",
-                         path=where)
-    return float(v)
-
-
 def _stage(effects, stage: str, arr: np.ndarray, ctx: SensorContext) -> np.ndarray:
     for eff in effects:
         fn = getattr(eff, stage, None)
@@ -199,22 +188,12 @@ class SensorModel:
     def from_rig(cls, rig) -> SensorModel:
         """From a :class:`glossrig.core.rig.Rig`: ``rig.camera`` (cfa, bits,
         white_level, black_level) and the ``[sensor]`` section."""
-        sec = rig.raw.get("sensor")
-        if not isinstance(sec, dict):
-            raise InputError("rig has no [sensor] section", path=rig.path)
-        k = sec.get("electrons_per_radiance_s_f11")
-        if not isinstance(k, list) or len(k) != 3 or not all(
-                isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0 for x in k):
-            raise InputError(f"sensor.electrons_per_radiance_s_f11 must list 3 positive numbers (R, G, B), got {k!r}",
-                             path=rig.path)
-        cam = rig.camera
-        full_well = _positive(sec, "full_well_e", rig.path)
+        cam, sen = rig.camera, rig.sensor        # both checked by load_rig
         return cls(cfa=cam.cfa, bits=int(cam.bits), white_level=int(cam.white_level),
                    black_level=tuple(int(b) for b in cam.black_level),
-                   electrons_per_dn_iso100=_positive(sec, "electrons_per_dn_iso100", rig.path),
-                   read_noise_e=_positive(sec, "read_noise_e", rig.path, allow_zero=True),
-                   dark_current_e_s=_positive(sec, "dark_current_e_s", rig.path, allow_zero=True),
-                   full_well_e=full_well, electrons_per_radiance_s_f11=tuple(float(x) for x in k))
+                   electrons_per_dn_iso100=sen.electrons_per_dn_iso100, read_noise_e=sen.read_noise_e,
+                   dark_current_e_s=sen.dark_current_e_s, full_well_e=sen.full_well_e,
+                   electrons_per_radiance_s_f11=sen.electrons_per_radiance_s_f11)
 
     # ------------------------------------------------------------ helpers
 

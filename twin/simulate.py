@@ -30,8 +30,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from glossrig.core.capture import (TRUTH, ImageEntry, Manifest, atomic_write_json, check_rotation_tags, image_stem,
-                                   load_manifest, rotation_tag, sha256_file)
+from glossrig.core.atomic import atomic_write_json
+from glossrig.core.capture import (TRUTH, ImageEntry, Manifest, check_rotation_tags, image_stem, load_manifest,
+                                   rotation_tag, sha256_file)
 from glossrig.core.errors import InputError
 from glossrig.core.models.materials import parse_material
 from glossrig.core.progress import progress_enabled
@@ -57,6 +58,17 @@ def prepare_out(out: Path, resume: bool = False) -> None:
         raise InputError(f"output folder is not writable: {e.strerror}", path=out) from None
 
 
+def parse_twin_material(spec: str):
+    """:func:`glossrig.core.models.materials.parse_material`, and a Mitsuba BSDF description
+    loaded once, so a bad file fails before anything is written."""
+    material = parse_material(spec)
+    if material.kind == "mitsuba":
+        from .mitsuba_material import load_bsdf
+
+        load_bsdf(material)
+    return material
+
+
 #: The copy of the rig description every capture folder holds (as ``glossrig capture`` writes it).
 RIG_COPY = "rig.toml"
 #: The manifest key under which ``simulate`` records the options that determine its images.
@@ -77,10 +89,9 @@ def _check_resume(out: Path, options: dict) -> bool:
                              "(nothing was changed)", path=out)
         return False
     try:
-        doc = json.loads(man.read_text())
-    except (OSError, ValueError) as e:
+        old = load_manifest(out).meta.get(OPTIONS_KEY)
+    except InputError as e:
         raise InputError(f"--resume: the manifest cannot be read ({e})", path=man) from None
-    old = doc.get(OPTIONS_KEY) if isinstance(doc, dict) else None
     if not isinstance(old, dict):
         raise InputError("--resume: this capture was not made by glossrig simulate (its manifest records no "
                          "simulate options); nothing was changed", path=man)
@@ -106,7 +117,7 @@ def simulate(rig_path, material_spec: str, leds_spec, rotations, repeats: int, s
     uninterrupted one; resume checks every recorded file against its sha256 and retakes
     what is missing or damaged."""
     rig = load_rig(rig_path)
-    material = parse_material(material_spec)
+    material = parse_twin_material(material_spec)
     if repeats < 1:
         raise InputError(f"--repeats must be >= 1, got {repeats}")
     if not (0.01 <= scale <= 1.0):
@@ -185,8 +196,8 @@ def checkerboard_poses(rig, lens, n: int, seed: int) -> list[tuple[np.ndarray, n
     import cv2
 
     rng = np.random.default_rng([seed, 5])
-    nx, ny = rig.section("checkerboard")["inner_corners"]
-    sq = float(rig.section("checkerboard")["square"])
+    nx, ny = rig.checkerboard.inner_corners
+    sq = rig.checkerboard.square
     obj = np.array([[i * sq, j * sq, 0.0] for j in range(ny) for i in range(nx)])
     Rc, tc = rig.camera.pose()
     w, h = lens.size
@@ -236,7 +247,7 @@ def simulate_checkerboard(rig, out: Path, scale: float, seed: int, views: int, s
     from .sensor import SensorModel
     from .virtual_rig import T0, SHOT_OVERHEAD_S
     from datetime import timedelta
-    from glossrig.core.capture import atomic_write_bytes
+    from glossrig.core.atomic import atomic_write_bytes
 
     lens = LensMap.build(rig.camera, scale)
     sensor = SensorModel.from_rig(rig)
@@ -288,8 +299,8 @@ def simulate_checkerboard(rig, out: Path, scale: float, seed: int, views: int, s
              "camera_matrix": lens.K.tolist(), "distortion": list(cam.distortion),
              "board_poses_in_holder": [{"R": Rb.tolist(), "t_mm": tb.tolist()} for Rb, tb in poses],
              "camera_R_holder_to_camera": R.tolist(), "camera_t_mm": t.tolist(),
-             "inner_corners": list(rig.section("checkerboard")["inner_corners"]),
-             "square_mm": rig.section("checkerboard")["square"]}
+             "inner_corners": list(rig.checkerboard.inner_corners),
+             "square_mm": rig.checkerboard.square}
     atomic_write_json(out / TRUTH, truth)
     man.complete = True
     man.save()

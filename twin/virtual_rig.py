@@ -32,7 +32,7 @@ from glossrig.core.rig import Rig
 from .effects import EffectState
 from .render import LensMap, render_array
 from .sensor import frame_rng
-from .scene import LED_RGB, MM, SceneSpec, new_workdir, sample_scene
+from .scene import LED_RGB, MM, ROTATING_KINDS, SceneSpec, new_workdir, sample_scene
 
 T0 = datetime(2026, 1, 1, 9, 0, 0, tzinfo=timezone.utc)
 SHOT_OVERHEAD_S = (240.0 - 61.00725) / 18.0   # Table 4.1's exposures sum to 61.00725 s
@@ -53,7 +53,7 @@ class VirtualRig:
         self.camera_R, self.camera_t = rig.camera.pose()
         self.sample_radius = rig.cylinder_radius + self.effects.get("sample_radius_error")
         self.led_positions = {led.id: self.effects.led_position(led) for led in rig.leds}
-        self.intensity = float(rig.section("leds")["radiant_intensity_W_sr"])
+        self.intensity = rig.lighting.radiant_intensity_W_sr
         self._workdir = new_workdir()
         spec = SceneSpec(sample_radius=self.sample_radius, camera_R=self.camera_R, camera_t=self.camera_t,
                          canvas=self.lens.canvas, focal=self.lens.focal, spp=self.lens.canvas_spp(spp), led_positions=self.led_positions)
@@ -72,7 +72,7 @@ class VirtualRig:
     # --- device-like interface ---------------------------------------------
     def set_rotation(self, deg: float) -> None:
         self.rotation = float(deg)
-        if self.material.kind == "ward":
+        if self.material.kind in ROTATING_KINDS:
             self._cache.clear()     # renders depend on the rotation
 
     def switch(self, led_ids) -> None:
@@ -127,7 +127,7 @@ class VirtualRig:
     def led_radiance(self, led_id: int) -> np.ndarray:
         """Linear radiance (h, w, 3) W m^-2 sr^-1 with only ``led_id`` on at its nominal
         output (emission pattern and vignetting included; gain and stray light not)."""
-        key = (led_id, self.rotation if self.material.kind == "ward" else 0.0)
+        key = (led_id, self.rotation if self.material.kind in ROTATING_KINDS else 0.0)
         if key not in self._cache:
             from .mitsuba_env import mitsuba
 
@@ -135,7 +135,7 @@ class VirtualRig:
             pos = self.led_positions[led_id]
             self.params["led.position"] = mi.Point3f(*[p * MM for p in pos])
             self.params["led.intensity.value"] = mi.Color3f(*[self.intensity * c for c in LED_RGB])
-            if self.material.kind == "ward":
+            if self.material.kind in ROTATING_KINDS:
                 rot = math.radians(self.rotation + self.effects.get("sample_rotation_offset"))
                 self.params["sample.bsdf.tangent_rotation"] = rot
             self.params.update()
@@ -171,8 +171,12 @@ class VirtualRig:
     # --- truth ------------------------------------------------------------------
     def truth(self) -> dict:
         cam = self.rig.camera
+        material = self.material.to_json()
+        if self.material.kind == "mitsuba":
+            material["evaluate"] = ("glossrig.twin.mitsuba_material.MitsubaBRDF.from_json(truth['material'])"
+                                    ".table(samples, rotation_offset_deg=truth['sample_rotation_offset_deg'])")
         return {
-            "material": self.material.to_json(),
+            "material": material,
             "rig": {"path": self.rig.path, "name": self.rig.name},
             "scale": self.scale, "seed": self.seed, "spp": self.spp, "supersample": self.lens.supersample,
             "image_size": list(self.lens.size),

@@ -2,7 +2,7 @@
 validation/calibration_report.md.
 
     DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 \\
-    .venv/bin/python validation/calibration_study.py --work /tmp/calstudy [--seeds 3] [--scale 0.25]
+    .venv/bin/python -m validation.calibration_study --work /tmp/calstudy [--seeds 3] [--scale 0.25]
 
 1. Intrinsics: ``glossrig simulate --target checkerboard --views 12 --scale S --seed s``
    then ``glossrig calibrate camera`` for seeds 1..N, and seed N with 30 views (as
@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -37,25 +36,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from glossrig.core.capture import capture_complete, load_manifest
-
-ROOT = Path(__file__).resolve().parents[1]
-RIG = ROOT / "scenes/thesis_rig.toml"
-
-
-def glossrig(*args) -> None:
-    subprocess.run([sys.executable, "-m", "glossrig.cli.main", *map(str, args)], check=True,
-                   stdout=subprocess.DEVNULL)
-
-
-def simulate(out: Path, *args) -> Path:
-    if not capture_complete(out):
-        if out.exists():
-            import shutil
-
-            shutil.rmtree(out)
-        glossrig("simulate", "--rig", RIG, *args, "--no-progress", "--out", out)
-    return out
+from glossrig.core.capture import load_manifest, read_truth
+from validation.common import checkerboard, glossrig, simulate, truth_camera
+from validation.paths import RIG
 
 
 def rot_err(Ra, Rb) -> float:
@@ -78,14 +61,13 @@ def intrinsics_part(work: Path, scale: float, runs: list[tuple[int, int]]) -> li
     rows = []
     for s, views in runs:
         tag = f"s{s}" if views == 12 else f"s{s}_v{views}"
-        d = simulate(work / f"checker_{tag}", "--target", "checkerboard", "--views", views, "--scale", scale,
-                     "--seed", s)
+        d = checkerboard(work / f"checker_{tag}", views, scale, s, stdout=False)
         cam = work / f"camera_{tag}.json"
         t0 = time.time()
-        glossrig("calibrate", "camera", d, "--out", cam, "--force", "--no-progress")
+        glossrig("calibrate", "camera", d, "--out", cam, "--force", "--no-progress", stdout=False)
         dt = time.time() - t0
         c = load_camera(cam)
-        t = json.loads((d / "truth.json").read_text())
+        t = read_truth(d)
         K = np.array(t["camera_matrix"])
         rows.append({"seed": s, "views_shot": views, "views": len(c.meta["views"]),
                      "skipped": [x["file"] + ": " + x["reason"] for x in c.meta["skipped"]],
@@ -121,29 +103,17 @@ def pose_errors(res: dict, t: dict) -> dict:
     return out
 
 
-def true_camera(capture: Path, work: Path) -> Path:
-    from glossrig.core.calibration.intrinsics import CameraCalibration, save_camera
-
-    t = json.loads((capture / "truth.json").read_text())
-    K = np.array(t["camera_matrix"])
-    out = work / f"true_camera_{capture.name}.json"
-    if out.exists():
-        out.unlink()
-    cal = CameraCalibration(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], distortion=tuple(t["distortion"]),
-                            image_size=tuple(t["image_size"]))
-    return save_camera(cal, {"source": "truth.json"}, out)
-
-
 def poses_part(work: Path, scale: float, seeds: list[int], calibrated_camera: Path) -> list[dict]:
     from glossrig.core.calibration.poses import calibrate_capture
 
     rows = []
     for s in seeds:
         cap = simulate(work / f"cap_s{s}", "--material", "lambert:0.8", "--leds", 9, "--rotations", 0,
-                       "--scale", scale, "--seed", s)
-        t = json.loads((cap / "truth.json").read_text())
+                       "--scale", scale, "--seed", s, stdout=False)
+        t = read_truth(cap)
         row = {"seed": s}
-        for cam_tag, cam in (("true_intrinsics", true_camera(cap, work)), ("calibrated_intrinsics", calibrated_camera)):
+        true_cam = truth_camera(cap, work / f"true_camera_{cap.name}.json")
+        for cam_tag, cam in (("true_intrinsics", true_cam), ("calibrated_intrinsics", calibrated_camera)):
             for edges in ("inner", "all"):
                 if cam_tag == "calibrated_intrinsics" and edges == "all":
                     continue
@@ -189,7 +159,7 @@ def edge_offsets_at_truth(capture: Path, rig) -> dict:
     from glossrig.core.calibration.marker_detect import _distort
     from glossrig.core.calibration.raw import linearize, read_raw
 
-    t = json.loads((capture / "truth.json").read_text())
+    t = read_truth(capture)
     K, dist = np.array(t["camera_matrix"]), np.array(t["distortion"])
     R, tt = np.array(t["camera_R_holder_to_camera"]), np.array(t["camera_t_mm"])
     fr = read_raw(capture / load_manifest(capture).select("calibration")[0].file)
@@ -364,7 +334,7 @@ def main() -> int:
     results["intrinsics"] = intr = intrinsics_part(work, a.scale, runs)
     results["poses"] = poses = poses_part(work, a.scale, list(range(2, a.seeds + 2)), Path(intr[0]["camera_json"]))
     cap = work / "cap_s2"
-    t = json.loads((cap / "truth.json").read_text())
+    t = read_truth(cap)
     results["sensitivity_0p05deg"] = sensitivity(rig, t)
     results["edge_offsets_at_truth"] = edge_offsets_at_truth(cap, rig)
     results["synthetic_holder"] = [synthetic_holder(rig, t, seed=k) for k in range(3)]

@@ -1,7 +1,7 @@
 """Benchmark of ``glossrig extract`` at full resolution (issue 3): seconds, megapixels
 per second and peak memory, split by stage.
 
-    python validation/extract_benchmark.py --work /tmp/bench_extract [--leds 9,10] [--repeats 3]
+    python -m validation.extract_benchmark --work /tmp/bench_extract [--leds 9,10] [--repeats 3]
 
 1. Simulates (once; reused when complete) full-resolution (scale 1.0, 6032 x 4032)
    twin captures of the sample (``sample_2_6``) and the ``lambert:0.8`` reference with
@@ -33,22 +33,15 @@ import sys
 import time
 from pathlib import Path
 
-from glossrig.core.capture import capture_complete
+from validation.common import camera, capture
+from validation.paths import RIG, ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
-RIG = ROOT / "scenes/thesis_rig.toml"
 FRAME_MP = 6032 * 4032 / 1e6
-
-
-def glossrig(*args):
-    subprocess.run([sys.executable, "-m", "glossrig.cli.main", *map(str, args)], check=True)
 
 
 def prepare(w: Path, leds: str, repeats: int) -> None:
     if not (w / "camera.json").exists():
-        glossrig("simulate", "--rig", RIG, "--target", "checkerboard", "--views", 10, "--scale", 0.25, "--seed", 1,
-                 "--no-progress", "--out", w / "checker")
-        glossrig("calibrate", "camera", w / "checker", "--out", w / "camera_q.json")
+        camera(w / "camera_q.json", w / "checker", 10, 0.25, 1)
         c = json.loads((w / "camera_q.json").read_text())
         for k in ("fx", "fy"):
             c[k] *= 4
@@ -58,12 +51,7 @@ def prepare(w: Path, leds: str, repeats: int) -> None:
         c["image_size"] = [6032, 4032]
         (w / "camera.json").write_text(json.dumps(c))
     for name, mat, seed in (("sample", "sample_2_6", 2), ("reference", "lambert:0.8", 3)):
-        if not capture_complete(w / name):
-            import shutil
-
-            shutil.rmtree(w / name, ignore_errors=True)
-            glossrig("simulate", "--rig", RIG, "--material", mat, "--leds", leds, "--rotations", 0, "--repeats",
-                     repeats, "--scale", 1.0, "--seed", seed, "--no-progress", "--out", w / name)
+        capture(w / name, mat, 1.0, seed, "0", repeats, leds=leds)
 
 
 def subset(src: Path, dst: Path, leds: list[int]) -> Path:
@@ -181,7 +169,7 @@ def report(runs: dict[int, dict], args) -> str:
 
     lines = ["# `glossrig extract` at full resolution (6032 x 4032, 24.3 MP)", "",
              "Command (simulates the captures once, then runs one measuring process per LED count):", "",
-             f"    nice -n 5 python validation/extract_benchmark.py --work {args.work} --leds {args.leds} "
+             f"    nice -n 5 python -m validation.extract_benchmark --work {args.work} --leds {args.leds} "
              f"--repeats {args.repeats} --counts {args.counts}", "",
              f"Measured: twin captures at scale 1.0 of `sample_2_6` and the `lambert:0.8` reference, LEDs "
              f"{args.leds} x {args.repeats} repeats x 18 exposures each (48 MB DNGs), one rotation; the "
@@ -295,8 +283,8 @@ def main() -> None:
         if not res.exists():
             s = subset(w / "sample", w / f"sample_{k}led", leds[:k])
             r = subset(w / "reference", w / f"reference_{k}led", leds[:k])
-            subprocess.run([sys.executable, __file__, "--work", str(w), "--measure", str(s), str(r),
-                            str(w / "camera.json"), str(res)], check=True)
+            subprocess.run([sys.executable, "-m", "validation.extract_benchmark", "--work", str(w), "--measure", str(s),
+                            str(r), str(w / "camera.json"), str(res)], check=True)
         runs[k] = json.loads(res.read_text())
         print(k, "LEDs:", json.dumps(runs[k]))
     text = report(runs, a)

@@ -1,6 +1,6 @@
 """End-to-end ground-truth recovery on the twin: simulate -> calibrate -> extract -> fit.
 
-    python validation/pipeline_study.py --out /tmp/study --scale 0.25 \
+    python -m validation.pipeline_study --out /tmp/study --scale 0.25 \
         --materials sample_2_6,isotropic_glossy --rotations 0 [--repeats 1] [--fit]
 
 Steps (each a real `glossrig` command, so this is also what a user runs):
@@ -18,50 +18,17 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from glossrig.core.capture import capture_complete
-
-ROOT = Path(__file__).resolve().parents[1]
-RIG = ROOT / "scenes/thesis_rig.toml"
-
-
-def glossrig(*args) -> None:
-    subprocess.run([sys.executable, "-m", "glossrig.cli.main", *map(str, args)], check=True)
-
-
-def simulate(out: Path, material: str, scale: float, seed: int, rotations: str, repeats: int, extra=(),
-             leds: str = "middle") -> Path:
-    if not capture_complete(out):
-        if out.exists():
-            import shutil
-
-            shutil.rmtree(out)
-        glossrig("simulate", "--rig", RIG, "--material", material, "--leds", leds, f"--rotations={rotations}",
-                 "--repeats", repeats, "--scale", scale, "--seed", seed, "--no-progress", "--out", out, *extra)
-    return out
-
-
-def calibrate(out: Path, scale: float, seed: int, lamp_rotations: str = "0", repeats: int = 1,
-              leds: str = "middle", extra=()) -> tuple[Path, Path]:
-    """Camera and lamp calibration of the nominal rig on the twin, resumable in OUT: 12
-    checkerboard views (seed) -> `glossrig calibrate camera` -> OUT/camera.json; a
-    transparency-sheet capture of LEDS (seed + 1) -> `glossrig calibrate lamps` (thesis
-    4.3.4) -> OUT/lamps.json. A camera.json or lamps.json already in OUT is kept."""
-    checker, cam, lamps = out / "checker", out / "camera.json", out / "lamps.json"
-    if not cam.exists():
-        if not (checker / "capture.json").exists():
-            glossrig("simulate", "--rig", RIG, "--target", "checkerboard", "--views", 12, "--scale", scale,
-                     "--seed", seed, "--no-progress", "--out", checker)
-        glossrig("calibrate", "camera", checker, "--out", cam)
-    if not lamps.exists():
-        spec = simulate(out / "specular", "transparency_sheet", scale, seed + 1, lamp_rotations, repeats, extra, leds)
-        glossrig("calibrate", "lamps", spec, "--camera", cam, "--out", lamps)
-    return cam, lamps
+from glossrig.core.calibration.intrinsics import load_camera
+from glossrig.core.calibration.lamps import load_lamps
+from glossrig.core.capture import read_truth
+from glossrig.core.fitting.export import read_fit_file
+from validation.common import calibrate, capture, extract, fit
+from validation.paths import RIG
 
 
 def _by_theta_h(th_deg: np.ndarray, rel: np.ndarray, edges: np.ndarray) -> list[dict]:
@@ -97,12 +64,12 @@ def brdf_errors(samples_path: Path, truth_path: Path) -> dict:
     from glossrig.core.models.ward import WardParams, ward_from_angles
 
     df = read_samples(samples_path)
-    truth = json.loads(truth_path.read_text())
+    truth = read_truth(truth_path)
     w = WardParams(**truth["material"]["ward"])
     f = np.asarray(ward_from_angles(df.theta_in, df.theta_out, df.theta_h, df.phi_h, w), float)
     f_fp = footprint_truth(df, w, load_rig(RIG).camera.cfa)
     y = np.asarray(luminance(df.r, df.g, df.b), float)
-    sel = f > 0.05
+    sel = (f > 0.05) & np.isfinite(y)          # NaN: a channel missing there (core/samples.py)
     rel = y[sel] / f[sel] - 1
     rel_fp = y[sel] / f_fp[sel] - 1
     th = np.degrees(df.theta_h.to_numpy()[sel])
@@ -135,33 +102,28 @@ def main(argv=None) -> dict:
     report: dict = {"scale": a.scale, "rotations": a.rotations, "repeats": a.repeats}
 
     cam, lamps = calibrate(out, a.scale, a.seed, a.lamp_rotations, a.repeats)
-    c = json.loads(cam.read_text())
-    t = json.loads((out / "checker" / "truth.json").read_text())
+    c = load_camera(cam)
+    t = read_truth(out / "checker")
     K = np.array(t["camera_matrix"])
-    report["intrinsics"] = {"fx_rel_err": c["fx"] / K[0, 0] - 1, "fy_rel_err": c["fy"] / K[1, 1] - 1,
-                            "cx_err_px": c["cx"] - K[0, 2], "cy_err_px": c["cy"] - K[1, 2],
-                            "rms_px": c.get("reprojection_rms_px")}
+    report["intrinsics"] = {"fx_rel_err": c.fx / K[0, 0] - 1, "fy_rel_err": c.fy / K[1, 1] - 1,
+                            "cx_err_px": c.cx - K[0, 2], "cy_err_px": c.cy - K[1, 2], "rms_px": c.rms_px}
 
     spec = out / "specular"
-    L = json.loads(lamps.read_text())["lamps_mm"]
-    tl = json.loads((spec / "truth.json").read_text())["led_positions_mm"]
-    report["lamp_error_mm"] = {k: float(np.linalg.norm(np.subtract(v, tl[k]))) for k, v in L.items()}
+    L = load_lamps(lamps)
+    tl = read_truth(spec)["led_positions_mm"]
+    report["lamp_error_mm"] = {str(k): float(np.linalg.norm(np.subtract(v, tl[str(k)]))) for k, v in L.items()}
 
-    ref = simulate(out / "reference", "lambert:0.8", a.scale, a.seed + 2, a.rotations, a.repeats)
+    ref = capture(out / "reference", "lambert:0.8", a.scale, a.seed + 2, a.rotations, a.repeats)
     report["materials"] = {}
     for k, m in enumerate(a.materials.split(",")):
-        cap = simulate(out / m, m, a.scale, a.seed + 10 + k, a.rotations, a.repeats)
-        sp = out / f"{m}.parquet"
-        if not sp.exists():
-                glossrig("extract", cap, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", sp,
-                     "--no-progress")
+        cap = capture(out / m, m, a.scale, a.seed + 10 + k, a.rotations, a.repeats)
+        sp = extract(cap, ref, cam, lamps, out / f"{m}.parquet")
         entry = brdf_errors(sp, cap / "truth.json")
         if a.fit:
-            fj = out / f"{m}.fit.json"
-            if not fj.exists():
-                glossrig("fit", sp, "--out", fj)
-            entry["fit"] = json.loads(fj.read_text())["luminance"]
-            entry["truth"] = json.loads((cap / "truth.json").read_text())["material"]["ward"]
+            fj = fit(sp, out / f"{m}.fit.json")
+            f = read_fit_file(fj)
+            entry["fit"] = {**f.fit.fits["luminance"].to_json(), **({"gloss": f.gloss} if f.gloss else {})}
+            entry["truth"] = read_truth(cap)["material"]["ward"]
         report["materials"][m] = entry
         (out / "report.json").write_text(json.dumps(report, indent=1))     # progress survives a stop
     (out / "report.json").write_text(json.dumps(report, indent=1))
@@ -174,7 +136,7 @@ def main(argv=None) -> dict:
 def markdown(r: dict, argv) -> str:
     i = r["intrinsics"]
     lines = ["# Pipeline ground-truth recovery on the twin (issue 3)", "",
-             f"Command: `python validation/pipeline_study.py {' '.join(argv or sys.argv[1:])}`", "",
+             f"Command: `python -m validation.pipeline_study {' '.join(argv or sys.argv[1:])}`", "",
              f"Scale {r['scale']}, rotations {r['rotations']}, {r['repeats']} repeat(s), thesis LED fluctuations and "
              "sensor noise, reference lambert:0.8.", "",
              "| quantity | measured | target |", "|---|---|---|",

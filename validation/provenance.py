@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from glossrig.core.atomic import atomic_write_text
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -28,6 +30,4 @@ def record(path: Path, key: str) -> None:
     """Add ``key`` -> the current code version to the JSON file ``path`` (created if missing)."""
     d = json.loads(path.read_text()) if path.exists() else {}
     d[key] = code_version()
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(d, indent=1))
-    tmp.replace(path)
+    atomic_write_text(path, json.dumps(d, indent=1))

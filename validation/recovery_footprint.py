@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from glossrig.core.capture import read_truth
 from glossrig.core.models.footprint import (exponent, footprint_average, kernel_rms_px, luminance_kernel,  # noqa: F401
                                      slope_jacobian, slopes)
 
@@ -67,7 +68,7 @@ def study(work: Path, material: str, render: str, fit: bool = True, at_scale: fl
     from glossrig.core.models.ward import WardParams, ward_from_angles
 
     df = read_samples(work / f"{material}.parquet")
-    truth_json = json.loads((work / material / "truth.json").read_text())
+    truth_json = read_truth(work / material)
     p = WardParams(**truth_json["material"]["ward"])
     from glossrig.core.rig import default_rig_path, load_rig
 
@@ -91,7 +92,7 @@ def study(work: Path, material: str, render: str, fit: bool = True, at_scale: fl
     f_meas = footprint_average(df, p, J, offs, w)
     f_point = ward_from_angles(df["theta_in"], df["theta_out"], df["theta_h"], df["phi_h"], p)
     y = np.asarray(luminance(df["r"], df["g"], df["b"]), float)
-    sel = f_point > 0.05                               # the report's selection (pipeline_study)
+    sel = (f_point > 0.05) & np.isfinite(y)           # the report's selection (pipeline_study)
     lobe = f_point - p.rho_d / np.pi > 0.5 * f_point      # the lobe is most of the BRDF
     pred = f_meas[sel] / f_point[sel] - 1
     obs = y[sel] / f_point[sel] - 1
@@ -118,7 +119,9 @@ def study(work: Path, material: str, render: str, fit: bool = True, at_scale: fl
     }
     if fit:
         # the pipeline's own fit (`glossrig fit`'s defaults: luminance, the table's weight column)
-        r = fit_samples(df.assign(r=f_meas, g=f_meas, b=f_meas), channels=["luminance"]).fits["luminance"]
+        # the point model (eq. 4.79): the bias a fit that ignores the footprint suffers
+        r = fit_samples(df.assign(r=f_meas, g=f_meas, b=f_meas), channels=["luminance"],
+                        footprint=False, budget=False).fits["luminance"]
         out["footprint_only_fit"] = r.params.as_dict()
         out["footprint_only_rel_err"] = parameter_errors(r.params, p)
     return out

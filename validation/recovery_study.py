@@ -1,7 +1,7 @@
 """Ground-truth recovery of every Table 9.1 material on the twin (issue 4).
 
-    python validation/recovery_study.py --work /tmp/recovery [--scale 0.25]
-    python validation/recovery_study.py --work /tmp/recovery --report-only \
+    python -m validation.recovery_study --work /tmp/recovery [--scale 0.25]
+    python -m validation.recovery_study --work /tmp/recovery --report-only \
         [--scale-runs /tmp/recovery_s025r0,/tmp/recovery_s05]
 
 simulate (middle-row LEDs, rotations -45, 0, 45, 90, one repeat) -> calibrate camera
@@ -40,14 +40,15 @@ import numpy as np
 from glossrig.core.fitting.fit import parameter_errors
 
 HERE = Path(__file__).resolve().parent
-SHARED = HERE.parent.parent / "shared"
 TARGETS = {"rho_d": 0.03, "rho_s": 0.10, "alpha_x": 0.10, "alpha_y": 0.10, "lobe_rotation_deg": 3.0}
 LOBE = ("rho_s", "alpha_x", "alpha_y", "lobe_rotation_deg")
 FOOTPRINT_CMD = "python validation/recovery_footprint.py --work {work} --materials {materials} --render {render}"
 
 
 def materials() -> list[str]:
-    rows = [r for r in csv.reader(l for l in open(SHARED / "data/thesis/ward_params.csv") if not l.startswith("#"))]
+    from validation.paths import thesis_dir     # here, not at import: tests load this file by its path
+
+    rows = [r for r in csv.reader(l for l in open(thesis_dir() / "ward_params.csv") if not l.startswith("#"))]
     return [r[0] for r in rows[1:]]
 
 
@@ -330,7 +331,7 @@ def section_scale(runs: list[Path]) -> list[str]:
              "integration, twin/render.py `LensMap.apply`), each scale with its own calibration"
              + "".join(f" ({r.name} reuses the camera, lamp and reference captures of {(r / 'camera.json').resolve().parent})"
                        for r, *_ in rows if (r / "camera.json").is_symlink()) + ": "
-             + "; ".join(f"`python validation/pipeline_study.py --out {r} --scale {rep['scale']} --materials {m} "
+             + "; ".join(f"`python -m validation.pipeline_study --out {r} --scale {rep['scale']} --materials {m} "
                          f"--rotations {rep['rotations']} --fit` then `{FOOTPRINT_CMD.format(work=r, materials=m, render='area')}`"
                          for r, rep, m, *_ in rows) + ".", "",
              "| run | scale | rho_d | rho_s | alpha_x | alpha_y | lobe rot. (deg) | BRDF median abs. rel. err. | "
@@ -369,7 +370,7 @@ def section_scale(runs: list[Path]) -> list[str]:
 
 
 def main() -> None:
-    import pipeline_study
+    from validation import pipeline_study
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", required=True)
@@ -393,8 +394,8 @@ def main() -> None:
     done = len(ev)
     met = sum(r["met"] for r in ev.values())
     text = ["# Ground-truth recovery on the twin (issue 4)", "",
-            f"Commands: `python validation/recovery_study.py --work {a.work} --scale {rep['scale']}` (the study; "
-            f"resumable), then `python validation/recovery_study.py --work {a.work} --report-only"
+            f"Commands: `python -m validation.recovery_study --work {a.work} --scale {rep['scale']}` (the study; "
+            f"resumable), then `python -m validation.recovery_study --work {a.work} --report-only"
             + (f" --scale-runs {a.scale_runs}" if a.scale_runs else "") + "` (this report; the sections below name "
             "the commands that produce their inputs). Middle-row LEDs, rotations -45/0/45/90, one repeat, thesis LED "
             "fluctuations and sensor noise, reference lambert:0.8. Luminance fit; errors are fitted / true - 1 "

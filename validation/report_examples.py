@@ -29,43 +29,29 @@ from __future__ import annotations
 
 import argparse
 import base64
-import json
 import os
 import re
 import shutil
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from glossrig.core.fitting.export import read_fit_file
+from glossrig.core.report.recovery import read_recovery
+from validation.common import capture, glossrig
 from validation.paths import ROOT, rgl_dir
 
-RIG = ROOT / "scenes/thesis_rig.toml"
 SCALE = 0.25
 REF_SEED, SAMPLE_SEED = 5, 6          # the twin demo uses seeds 1-4
 ALWAYS_SKIP = {"samples.parquet", "samples.csv"}
 
 
-def glossrig(*args) -> None:
-    cmd = [sys.executable, "-m", "glossrig.cli.main", *map(str, args)]
-    print("+ glossrig " + " ".join(map(str, args)), flush=True)
-    subprocess.run(cmd, check=True)
-
-
 def simulate(out: Path, material: str, seed: int) -> Path:
     """A middle-LED, rotation-0 capture at SCALE; reused when complete, finished when interrupted."""
-    from glossrig.core.capture import capture_complete
-
-    if capture_complete(out):
-        print(f"reusing the complete capture {out}", flush=True)
-        return out
-    resume = ["--resume"] if out.exists() and any(out.iterdir()) else []
-    glossrig("simulate", "--rig", RIG, "--material", material, "--leds", "middle", "--rotations=0",
-             "--repeats", 1, "--scale", SCALE, "--seed", seed, "--no-progress", "--out", out, *resume)
-    return out
+    return capture(out, material, SCALE, seed, "0", 1, mode="resume", echo="+")
 
 
 def twin(work: Path, seed_from: str | None) -> Path:
@@ -73,7 +59,7 @@ def twin(work: Path, seed_from: str | None) -> Path:
     if seed_from and not d.exists():
         print(f"seeding {d} from {seed_from}", flush=True)
         subprocess.run(["cp", "-a", seed_from, str(d)], check=True)
-    glossrig("demo", "--out", d, "--scale", SCALE, "--resume")
+    glossrig("demo", "--out", d, "--scale", SCALE, "--resume", echo="+")
     return d
 
 
@@ -89,7 +75,7 @@ def rgl(work: Path, material: str, twin_dir: Path) -> Path:
             shutil.copy(src, dst)
     m = d / "measure"
     glossrig("measure", sample, "--reference", ref, "--camera", d / "camera.json", "--lamps", d / "lamps.json",
-             "--out", m, "--resume", "--no-progress")
+             "--out", m, "--resume", "--no-progress", echo="+")
     return m
 
 
@@ -198,7 +184,7 @@ def readme(out: Path, a, timings: dict, skipped: list, material: str) -> None:
          "embeds); they are not committed, to halve the size.", ""]
     rec = out / "twin/recovery.json"
     if rec.exists():
-        r = json.loads(rec.read_text())
+        r = read_recovery(rec)
         mat = r["material"]
         L += ["## twin: recovery of the twin's truth (recovery.json)", "",
               f"Camera: fx {r['intrinsics']['fx_error_percent']:+.3f} %, fy {r['intrinsics']['fy_error_percent']:+.3f} %, "
@@ -220,12 +206,13 @@ def readme(out: Path, a, timings: dict, skipped: list, material: str) -> None:
               "BRDF itself). Standard errors are noise-only.", "",
               "| channel | rho_d | rho_s | alpha_x | alpha_y | lobe_rotation (rad) | RMS relative residual |",
               "|---|---|---|---|---|---|---|"]
-        f = json.loads(fj.read_text())
-        for ch, c in _channels(f).items():
+        f = read_fit_file(fj)
+        for ch, wf in f.fit.fits.items():
+            c = wf.to_json()
             L.append(f"| {ch} | " + " | ".join(_pm(c, k) for k in ("rho_d", "rho_s", "alpha_x", "alpha_y",
                                                                    "lobe_rotation")) +
                      f" | {_fmt(_find(c, ('rms_relative',)), 3)} |")
-        g = _gloss(f)
+        g = f.gloss
         if g:
             L += ["", "Gloss of the fitted luminance model (fit.json): " +
                   ", ".join(f"{k} {_fmt(g.get(k), 3)}" for k in ("gu20", "gu60", "gu85", "haze", "doi") if k in g) +
@@ -245,11 +232,6 @@ def readme(out: Path, a, timings: dict, skipped: list, material: str) -> None:
     (out / "README.md").write_text("\n".join(L))
 
 
-def _channels(f: dict) -> dict:
-    """The per-channel fits of fit.json (luminance, r, g, b: top-level objects holding rho_d)."""
-    return {k: v for k, v in f.items() if isinstance(v, dict) and "rho_d" in v and "residuals" in v}
-
-
 def _find(c: dict, keys):
     r = c.get("residuals", {})
     for k in keys:
@@ -261,11 +243,6 @@ def _find(c: dict, keys):
 def _pm(c: dict, k: str) -> str:
     v, s = c.get(k), c.get(f"{k}_stderr")
     return _fmt(v) + (f" +- {s:.2g}" if isinstance(s, (int, float)) else "")
-
-
-def _gloss(f: dict) -> dict | None:
-    g = f.get("luminance", {}).get("gloss")
-    return g if isinstance(g, dict) else None
 
 
 def main(argv=None):

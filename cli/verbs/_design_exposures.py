@@ -115,7 +115,9 @@ def run(args) -> int:
     rots = _floats(args.rotations, "--rotations") if args.rotations else list(rig.sample_rotations)
     overhead = args.overhead
     if overhead is None:
-        overhead = float(rig.raw.get("capture", {}).get("overhead_s_per_shot", THESIS_OVERHEAD_S))
+        overhead = rig.capture.overhead_s_per_shot
+        if overhead is None:
+            overhead = THESIS_OVERHEAD_S
     if not (math.isfinite(overhead) and overhead >= 0):
         raise InputError(f"--overhead must be >= 0 s, got {overhead}")
     plan = plan_exposures(rig, material, leds, rots, noise_target=args.noise, margin=args.margin, scale=args.scale,

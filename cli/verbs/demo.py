@@ -117,11 +117,9 @@ def _sim_step(steps, out, rig, name: str, argv: list, files: dict, chatter: list
 
 
 def run(args) -> int:
-    import json
-
     from glossrig.cli.steps import StepRunner
     from glossrig.core.errors import GlossrigError, InputError
-    from glossrig.core.report.recovery import format_recovery
+    from glossrig.core.report.recovery import format_recovery, read_recovery
     from glossrig.core.rig import default_rig_path
 
     if args.force and args.resume:
@@ -161,7 +159,7 @@ def run(args) -> int:
     rec = out / "recovery.json"
     if not rec.is_file():
         raise GlossrigError(f"glossrig measure wrote no recovery table ({rec}): is {sample} a twin capture?")
-    for line in format_recovery(json.loads(rec.read_text())):
+    for line in format_recovery(read_recovery(rec)):
         print(line)
     print(f"  results in {out}: report.html, report.md, recovery.json, fit.json, samples.parquet, exports/, plots/")
     return 0

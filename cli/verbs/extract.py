@@ -5,7 +5,15 @@ truth.json), the camera calibration (glossrig calibrate camera) and the lamp
 positions (glossrig calibrate lamps), and writes the BRDF samples table
 (Parquet; columns theta_in, phi_in, theta_out, phi_out, theta_h, phi_h,
 theta_d, phi_d in radians in the tangent frame of thesis 4.3.5, r, g, b in
-1/sr, weight, u, v, led, rotation in degrees).
+1/sr, weight, u, v, led, rotation in degrees; weight_r, weight_g, weight_b per channel).
+
+A colour channel without a valid HDR value in a block (too dark at the longest
+exposure, saturated at the shortest, in the sample or the reference) is NaN there;
+the block keeps its other channels (glossrig.core.samples). Which channels ran out
+of dynamic range, at which LED, rotation and angles, and the exposure that would
+have fixed them, is logged (a warning per LED and channel from 5 % of its lit
+blocks) and, with --plots, written to PLOTS/dynamic_range.json and
+PLOTS/dynamic_range.png.
 
 The reference is a diffuse sample captured on the same rig with the same LEDs
 and rotations; it is treated as Lambertian with --reference-albedo (thesis 4.4:

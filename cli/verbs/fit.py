@@ -10,10 +10,21 @@ alpha_y, lobe_rotation, each with <name>_stderr (null when the data do not
 determine it), the covariance, residual statistics and the fit settings; and
 under "mitsuba" a material for the twin's glossrig_ward BSDF.
 
-The standard errors are NOISE-ONLY: they count the per-pixel noise of the
-samples and exclude the calibration and model error, which dominate a real
-measurement; they are not the measurement's uncertainty. Each channel says so
-in "stderr_kind", and the printed summary labels them.
+The model fitted is eq. 4.79 averaged over each sample's footprint (its Bayer
+block's read kernel and pixel areas, mapped by the local Jacobian of the half
+vector, which is taken from the table's neighbouring blocks; see
+glossrig.core.fitting.footprint_model) wherever the table has u, v, led and
+rotation; --no-footprint fits the point model. Each channel's "footprint" says
+which.
+
+The <name>_stderr are NOISE-ONLY: they count the per-pixel noise of the samples
+and exclude the calibration and model error; each channel says so in
+"stderr_kind". The measurement's uncertainty is each channel's "uncertainty":
+per parameter the combined standard uncertainty, a 95 % interval and the
+components noise, model (misfit, cluster-robust over LED x rotation blocks),
+footprint (what the model leaves of the footprint, with the LED's aperture)
+and calibration (from --calibration-uncertainty; omitted, and said so, without
+it); see glossrig.core.fitting.uncertainty. The printed summary shows the budget.
 
 fit.json's "provenance" records the samples file (path, resolved path, sha256)
 with the table's own provenance (captures, calibrations, extract options), the
@@ -58,6 +69,25 @@ def add_arguments(p) -> None:
     p.add_argument("--ignore-weight-column", action="store_true", help="do not use the table's weight column")
     p.add_argument("--starts", type=int, default=4, help="grid starts refined per channel (default 4)")
     p.add_argument("--seed", type=int, default=0, help="seed of the subset choice (default 0)")
+    p.add_argument("--no-footprint", action="store_true",
+                   help="fit the point model instead of the footprint-averaged one (its effect then goes into the "
+                        "uncertainty budget)")
+    p.add_argument("--cfa", default="RGGB", help="Bayer pattern of the camera, for the footprint (default RGGB)")
+    p.add_argument("--led-aperture", type=float, default=None, metavar="RAD",
+                   help="angular diameter of the LEDs' emitting area seen from the sample, radians, for the budget's "
+                        "footprint component (default: 0.75 mm at 300 mm, 0.0025; 0 for point LEDs such as the twin's)")
+    p.add_argument("--calibration-uncertainty", default=None, metavar="JSON",
+                   help="standard uncertainties the calibration gives the parameters: "
+                        '{"luminance": {"alpha_x": 1e-4, ...}, "r": {...}} (default: the budget omits calibration)')
+    p.add_argument("--camera", default=None, metavar="JSON",
+                   help="camera calibration for the budget's calibration component (default: the one the samples "
+                        "table's provenance records)")
+    p.add_argument("--lamps", default=None, metavar="JSON",
+                   help="lamp positions for the calibration component (default: from the table's provenance)")
+    p.add_argument("--capture", default=None, metavar="DIR",
+                   help="the sample capture whose calibration images give the poses (default: from the provenance)")
+    p.add_argument("--calibration-draws", type=int, default=24, metavar="N",
+                   help="Monte Carlo draws of the calibration component (default 24; 0: leave it out)")
     add_force_option(p, "an existing --out or --mitsuba file and a non-empty --plots folder")
     # -q/--quiet (no progress messages) is added to every verb by glossrig.cli.main
 
@@ -71,7 +101,10 @@ def _provenance(args, src: Path, channels: list[str], df) -> dict:
     prov = provenance({"samples": src},
                       {"channels": channels, "weighting": args.weighting, "clip": args.clip,
                        "clip_literal": args.clip_literal, "ignore_weight_column": args.ignore_weight_column,
-                       "starts": args.starts, "seed": args.seed},
+                       "starts": args.starts, "seed": args.seed, "footprint": not args.no_footprint,
+                       "cfa": args.cfa, "led_aperture": args.led_aperture,
+                       "calibration_uncertainty": args.calibration_uncertainty, "camera": args.camera,
+                       "lamps": args.lamps, "capture": args.capture, "calibration_draws": args.calibration_draws},
                       tool="glossrig fit")
     prov["inputs"]["samples"]["provenance"] = df.attrs.get("provenance")
     return prov
@@ -80,6 +113,7 @@ def _provenance(args, src: Path, channels: list[str], df) -> dict:
 def run(args) -> int:
     from glossrig.core.fitting.export import write_fit_json, write_mitsuba_material
     from glossrig.core.fitting.fit import CHANNELS, STDERR_KIND, fit_samples
+    from glossrig.core.fitting.uncertainty import budget_table
     from glossrig.core.samples import read_samples
 
     log = _log.info
@@ -98,12 +132,19 @@ def run(args) -> int:
         prepare_output(args.mitsuba, args.force)
     if args.plots:
         prepare_output(args.plots, args.force, kind="folder")
+    if args.led_aperture is not None and not (args.led_aperture >= 0):
+        raise InputError(f"--led-aperture must be >= 0 radians, got {args.led_aperture}")
+    calibration = _calibration_uncertainty(args.calibration_uncertainty)
     df = read_samples(src)
     if log:
         log(f"{src}: {len(df)} samples")
     mfit = fit_samples(df, channels=channels, weighting=args.weighting, clip=args.clip,
                        clip_model=not args.clip_literal, use_weight_column=not args.ignore_weight_column,
-                       source=str(src), n_starts=args.starts, seed=args.seed, log=log)
+                       source=str(src), n_starts=args.starts, seed=args.seed, log=log,
+                       footprint=False if args.no_footprint else None, cfa=args.cfa, led_aperture=args.led_aperture,
+                       calibration=calibration)
+    if calibration is None:
+        _add_calibration_component(args, df, mfit, log)
     write_fit_json(mfit, out, provenance=_provenance(args, src, channels, df))
     if log:
         log(f"wrote {out}")
@@ -135,4 +176,78 @@ def run(args) -> int:
             _log.warning(f"{c}: {', '.join(f.at_bound)} at a bound of Table 4.2; "
                          "the standard errors assume an interior optimum")
     print(f"stderr = {STDERR_KIND}: not the measurement's uncertainty")
+    print()
+    print("uncertainty budget (GUM):")
+    print(budget_table(mfit.fits))
     return 0
+
+
+def _calibration_uncertainty(path) -> dict | None:
+    """--calibration-uncertainty: ``{channel: {param: u}}`` (u >= 0, or ``{"u": u, "dof": nu}``)."""
+    from glossrig.core.fitting.fit import CHANNELS, PARAM_NAMES
+    from glossrig.core.toml_input import read_json
+
+    if path is None:
+        return None
+    doc = read_json(Path(path), "calibration uncertainty file")
+    if not isinstance(doc, dict) or not set(doc) <= set(CHANNELS):
+        raise InputError(f"expected an object with some of the channels {', '.join(CHANNELS)}", path=path)
+    for ch, params in doc.items():
+        if not isinstance(params, dict) or not set(params) <= set(PARAM_NAMES):
+            raise InputError(f"{ch}: expected an object with some of {', '.join(PARAM_NAMES)}", path=path)
+        for k, v in params.items():
+            u = v.get("u") if isinstance(v, dict) else v
+            if isinstance(u, bool) or not isinstance(u, (int, float)) or not u >= 0:
+                raise InputError(f"{ch}.{k}: a standard uncertainty must be a number >= 0, got {v!r}", path=path)
+    return doc
+
+
+def _calibration_files(args, df) -> tuple[dict | None, str]:
+    """camera.json, lamps.json and the sample capture for the calibration component: the
+    options, else the paths the samples table's provenance records; (None, why) if any
+    is missing."""
+    prov = (df.attrs.get("provenance") or {}).get("inputs") or {}
+
+    def pick(opt, key):
+        if opt:
+            return opt
+        e = prov.get(key) or {}
+        return e.get("resolved") or e.get("path")
+
+    files = {"camera": pick(args.camera, "camera"), "lamps": pick(args.lamps, "lamps"),
+             "capture": pick(args.capture, "sample")}
+    lacking = [k for k, v in files.items() if not v or not Path(v).exists()]
+    if lacking:
+        return None, (f"calibration not included: {', '.join(lacking)} not found (give --camera, --lamps, --capture "
+                      "or a samples table whose provenance names them)")
+    return files, ""
+
+
+def _add_calibration_component(args, df, mfit, log) -> None:
+    """Each channel's budget gets the calibration component
+    (:mod:`glossrig.core.fitting.calibration_uncertainty`) where the calibration files
+    can be found; else its ``omitted`` says why."""
+    from glossrig.core.fitting.calibration_uncertainty import add_calibration, calibration_component, load_inputs
+
+    if args.calibration_draws == 0:
+        files, why = None, "calibration not included (--calibration-draws 0)"
+    elif args.calibration_draws < 2:
+        raise InputError(f"--calibration-draws must be 0 or >= 2, got {args.calibration_draws}")
+    else:
+        files, why = _calibration_files(args, df)
+    if files is None:
+        for f in mfit.fits.values():
+            if f.uncertainty is not None:
+                f.uncertainty = add_calibration(f.uncertainty, None, why)
+        _log.warning(why)
+        return
+    if log:
+        log(f"calibration component: {args.calibration_draws} draws (poses from {files['capture']})")
+    cal = load_inputs(files["camera"], files["lamps"], files["capture"], sorted(df["rotation"].unique()))
+    comp = calibration_component(df, {c: f.params for c, f in mfit.fits.items()}, cal,
+                                 n_draws=args.calibration_draws, seed=args.seed, weighting=args.weighting,
+                                 clip=args.clip, use_weight_column=not args.ignore_weight_column)
+    for c, f in mfit.fits.items():
+        if f.uncertainty is not None:
+            f.uncertainty = add_calibration(f.uncertainty, comp[c])
+            f.uncertainty["budget"]["calibration"] = comp["_meta"]

@@ -82,12 +82,11 @@ def _rig_of(folder):
 
 
 def run(args) -> int:
-    import json
-
     from glossrig.cli.steps import StepRunner, output_digest
     from glossrig.core.capture import TRUTH
     from glossrig.core.checkpoint import capture_sha256
     from glossrig.core.errors import InputError
+    from glossrig.core.fitting.export import read_fit_file
     from glossrig.core.progress import progress_enabled
 
     if args.force and args.resume:
@@ -156,13 +155,13 @@ def run(args) -> int:
               files=report_files, captures={"sample": sample, "reference": ref},
               options={"exports": output_digest(exports_dir), "renders": output_digest(renders_dir)})
 
-    fit = json.loads(fit_path.read_text())
-    lum = fit.get("luminance") or {}
-    if lum:
-        print("luminance " + " ".join(f"{k}={lum[k]:.4g}" for k in ("rho_d", "rho_s", "alpha_x", "alpha_y",
-                                                                    "lobe_rotation")))
-    g = lum.get("gloss")
-    if isinstance(g, dict):
+    fit = read_fit_file(fit_path)
+    lum = fit.fit.fits.get("luminance")
+    if lum is not None:
+        print("luminance " + " ".join(f"{k}={getattr(lum.params, k):.4g}" for k in ("rho_d", "rho_s", "alpha_x",
+                                                                                     "alpha_y", "lobe_rotation")))
+    g = fit.gloss
+    if g is not None:
         print("gloss     " + " ".join(f"{k}={g[k]:.3g}" if isinstance(g.get(k), (int, float)) else f"{k}=-"
                                       for k in ("gu20", "gu60", "gu85", "haze", "doi")))
     print(f"{len(steps.done)} step(s) run, {len(steps.reused)} reused; report: {out / 'report.html'}")
@@ -268,24 +267,21 @@ def _renders(material: dict, renders_dir, args) -> None:
 
 
 def _recovery(truth, cam_path, lamps_path, fit_path, recovery_path) -> None:
-    import json
-
-    from glossrig.core.capture import atomic_write_bytes
+    from glossrig.core.atomic import atomic_write_json
     from glossrig.core.report.recovery import recovery_table
 
     rec = recovery_table(truth, camera_json=cam_path, lamps_json=lamps_path, fit_json=fit_path)
-    atomic_write_bytes(recovery_path, (json.dumps(rec, indent=1, allow_nan=False) + "\n").encode())
+    atomic_write_json(recovery_path, rec, allow_nan=False)
 
 
 def _report(out, sample, ref, cam_path, lamps_path, fit_path, samples_path, exports_dir, renders_dir, recovery,
             log) -> None:
-    import json
-
     from glossrig.core.report.document import write_report
+    from glossrig.core.report.recovery import read_recovery
 
     renders = {k: renders_dir / f"render_{k}.png" for k in ("sphere", "cloth")}
     renders = {k: p for k, p in renders.items() if p.is_file()}
     exports = sorted(p for p in exports_dir.iterdir() if p.is_file()) if exports_dir.is_dir() else []
     write_report(out, fit_json=fit_path, samples=samples_path, sample_dir=sample, reference_dir=ref,
                  camera_json=cam_path, lamps_json=lamps_path, renders=renders,
-                 recovery=json.loads(recovery.read_text()) if recovery else None, exports=exports, log=log)
+                 recovery=read_recovery(recovery) if recovery else None, exports=exports, log=log)

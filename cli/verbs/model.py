@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import tempfile
 import time
 from pathlib import Path
 
 from glossrig.cli.outputs import add_force_option, prepare_output
+from glossrig.cli.verbs import SubVerb
+from glossrig.core.atomic import atomic_write_text
 from glossrig.core.errors import InputError
 
 _log = logging.getLogger(__name__)
@@ -51,27 +51,18 @@ def _add_data_args(p) -> None:
     add_force_option(p, "an existing --out file")
 
 
-def add_arguments(parser) -> None:
-    sub = parser.add_subparsers(dest="model_verb", metavar="SUBVERB", required=True)
-    p = sub.add_parser("crossval", help="leave-one-out cross-validation of Table 7.1's three methods")
-    _add_data_args(p)
-    p.set_defaults(func=_crossval)
-    p = sub.add_parser("fit", help="fit bases and ETN sigmoid, write model.json")
+def _add_fit_args(p) -> None:
     _add_data_args(p)
     p.add_argument("--no-clip", action="store_true", help="do not clip BRDF values at 1.0 (eq. 6.5)")
-    p.set_defaults(func=_fit)
-    p = sub.add_parser("predict", help="nominal coverage to fabricate for a target's Ward parameters")
+
+
+def _add_predict_args(p) -> None:
     p.add_argument("--model", required=True, metavar="JSON", help="model written by 'glossrig model fit'")
     p.add_argument("--ward", required=True, metavar="PARAMS",
                    help="target: rho_d=..,rho_s=..,alpha_x=..,alpha_y=..[,lobe_rotation=..]; lobe_rotation in "
                         "radians, or with a unit (140deg, 2.44rad); rho_d in [0, 1], rho_s >= 0, "
                         "rho_d + rho_s <= 1, alpha in (0, 0.5] (thesis Table 4.2)")
     p.add_argument("--json", action="store_true", help="print the prediction as JSON")
-    p.set_defaults(func=_predict)
-
-
-def run(args) -> int:
-    return args.func(args)
 
 
 def _progress(t0: float):
@@ -109,13 +100,7 @@ def _write_json(path: Path, data: dict | str) -> None:
     """Write atomically: a failed or interrupted run leaves any earlier file intact."""
     text = data if isinstance(data, str) else json.dumps(data, indent=1) + "\n"
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent or ".")
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
+        atomic_write_text(path, text)
     except OSError as e:
         raise InputError(f"cannot write: {e.strerror}", path=path) from None
 
@@ -198,3 +183,10 @@ def _predict(args) -> int:
                      f"the best achievable mix is {pr.gamut_ratio:.2f} x further from it than any fabricated sample "
                      "is from the model")
     return 0
+
+
+SUBVERBS = (
+    SubVerb("crossval", "leave-one-out cross-validation of Table 7.1's three methods", _add_data_args, _crossval),
+    SubVerb("fit", "fit bases and ETN sigmoid, write model.json", _add_fit_args, _fit),
+    SubVerb("predict", "nominal coverage to fabricate for a target's Ward parameters", _add_predict_args, _predict),
+)

@@ -18,6 +18,11 @@ MATERIAL is one of
                        rho_s >= 0, rho_d + rho_s <= 1, alpha in (0, 0.5] as in thesis Table 4.2)
   lambert:ALBEDO
   measured:PATH        an RGL .bsdf file, e.g. ../shared/data/rgl/paper_white_rgb.bsdf
+  mitsuba:FILE.xml     any stock Mitsuba 3 BSDF, one <bsdf type="..."> element, e.g. an anisotropic
+                       roughconductor (alpha_u around the cylinder at rotation 0, alpha_v along its
+                       axis; the sample rotation turns it): scenes/materials/aniso_roughconductor_ggx.xml,
+                       aniso_roughconductor_beckmann.xml, aniso_principled.xml, roughplastic_beckmann.xml
+                       (a bare name finds these); truth.json records the XML text and its sha256
   NAME                 a file of scenes/materials (e.g. transparency_sheet, sample_2_6)
 LEDS is 'middle', 'all', a row name or comma-separated LED ids (1-16).
 EFFECTS is name=value,... from the twin's catalogue (see below). Unless --ideal,
@@ -91,11 +96,11 @@ def run(args) -> int:
     prepare_output(args.out, args.force, kind="folder", resume=resume)
     if args.force and not resume:
         # the cheap inputs first: a typo must not cost the earlier capture
-        from glossrig.core.models.materials import parse_material
         from glossrig.core.rig import load_rig
+        from glossrig.twin.simulate import parse_twin_material
 
         rig = load_rig(args.rig)
-        parse_material(args.material)
+        parse_twin_material(args.material)
         if args.target == "sample":
             rig.select_leds(args.leds)
         if args.repeats < 1 or not (0.01 <= args.scale <= 1.0):
@@ -115,22 +120,19 @@ def _clear_own_capture(out: Path) -> None:
     unfinished ``.*.part`` files; refuses (removing nothing) when the folder holds
     anything else or a manifest from another source (a real capture is never deleted).
     """
-    import json
-
-    from glossrig.core.capture import MANIFEST, TRUTH
+    from glossrig.core.capture import MANIFEST, TRUTH, load_manifest
     from glossrig.core.errors import InputError
 
     if not out.is_dir() or not any(out.iterdir()):
         return
-    man = out / MANIFEST
     try:
-        doc = json.loads(man.read_text())
-    except (OSError, ValueError):
-        doc = None
-    if not isinstance(doc, dict) or doc.get("source") != "glossrig twin":
+        man = load_manifest(out)
+    except InputError:
+        man = None
+    if man is None or man.meta.get("source") != "glossrig twin":
         raise InputError("is not empty and holds no capture made by glossrig simulate; --force only replaces "
                          "simulate's own captures (remove the folder yourself or choose another --out)", path=out)
-    own = {MANIFEST, TRUTH, "rig.toml"} | {str(im.get("file")) for im in doc.get("images", []) if isinstance(im, dict)}
+    own = {MANIFEST, TRUTH, "rig.toml"} | {im.file for im in man.images}
     doomed, foreign = [], []
     for p in sorted(out.iterdir()):
         if p.is_file() and (p.name in own or (p.name.startswith(".") and p.name.endswith(".part"))):

@@ -27,16 +27,21 @@ Departures from the text:
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from glossrig.core.models.angles import normalize
-from glossrig.core.capture import atomic_write_json
+from glossrig.core.atomic import atomic_write_json
+from glossrig.core.toml_input import read_json
 from glossrig.core.errors import InputError
 
 N_BRIGHTEST = 50          # the least number of valid samples accepted
+#: Stated standard uncertainty (mm, per holder axis) of a calibrated lamp position, written
+#: to lamps.json as ``std_mm`` (type B: the twin's lamp calibration errs by 0.6-0.9 mm in 3-D,
+#: validation/pipeline_study.py and the demo's recovery.json; ~0.5 mm per axis). Readers
+#: take it as the default for files written before the key existed.
+LAMP_STD_MM = 0.5
 PEAK_FRACTION = 0.5
 
 
@@ -184,6 +189,9 @@ def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = Tr
                       "highlight-weighted mean of the mirror rays (thesis 4.3.4)",
             "lamps_mm": {str(k): v.tolist() for k, v in lamps.items()},
             "spread_mm": {str(k): v for k, v in spreads.items()},
+            "std_mm": {str(k): [LAMP_STD_MM] * 3 for k in lamps},
+            "std_basis": "stated standard uncertainty per holder axis (type B, from the twin's recovery of lamp "
+                         "positions); spread_mm is the spread of the per-pixel estimates, not this",
             "highlight_estimate_mm": {str(k): v for k, v in highlight.items()},
             "diffuse_refinement": {str(k): v for k, v in stats.items()}}
 
@@ -193,14 +201,11 @@ def save_lamps(d: dict, path) -> None:
 
 
 def load_lamps(path) -> dict[int, np.ndarray]:
+    """The lamp positions (mm, holder frame) of a lamp file written by :func:`save_lamps`,
+    by LED id: the one reader of the file (errors name it)."""
     p = Path(path)
-    try:
-        d = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise InputError("lamp file not found", path=p) from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"lamp file is not valid JSON: {e}", path=p) from None
-    if d.get("kind") != "glossrig.lamps" or "lamps_mm" not in d:
+    d = read_json(p, "lamp file")
+    if not isinstance(d, dict) or d.get("kind") != "glossrig.lamps" or not isinstance(d.get("lamps_mm"), dict):
         raise InputError("not a glossrig lamp file (kind glossrig.lamps with lamps_mm)", path=p)
     out = {}
     for k, v in d["lamps_mm"].items():

@@ -101,7 +101,7 @@ class MarkerDetection:
     white_gains: np.ndarray   # per-channel gains applied before thresholding
     white_level: float        # white reference (after gains) that V is relative to
     image_size: tuple[int, int]
-    signal: np.ndarray = field(default=None, repr=False)   # the "redness" image the edges were read from
+    signal: np.ndarray | None = field(default=None, repr=False)   # the "redness" image the edges were read from
     contrast: float = 0.0     # smallest red/background contrast an edge profile must show
 
     def holder_image_points(self) -> np.ndarray:
@@ -295,6 +295,7 @@ def order_corners(pts: np.ndarray, up: np.ndarray, right: np.ndarray) -> np.ndar
         cost = float(np.sum(diff ** 2))
         if cost < best_cost:
             best, best_cost = idx, cost
+    assert best is not None, "corner angles are not finite"
     ll, lr, ur, ul = best
     return p[[ul, ur, ll, lr]]
 
@@ -500,8 +501,8 @@ def detect_markers(rgb: np.ndarray, rig, K: np.ndarray, dist, path: str = "<imag
     blobs = _blobs(mask, min_area)
     redness = np.ascontiguousarray((bal[..., 0] - bal[..., 1]) / np.float32(white))
 
-    hm = rig.section("holder")["marker"]
-    frame_ratio = float(hm["frame"]) / float(hm["outer_width"])
+    hm = rig.holder.marker
+    frame_ratio = hm.frame / hm.outer_width
     hole_ratio = (1 - 2 * frame_ratio) ** 2                       # white patch / outer area
     holders = [b for b in blobs if b.hole is not None and len(b.poly) == 4 and b.fill > 0.85
                and 0.4 * hole_ratio < b.hole_area / b.area < min(0.95, 2.0 * hole_ratio)]
@@ -512,7 +513,7 @@ def detect_markers(rgb: np.ndarray, rig, K: np.ndarray, dist, path: str = "<imag
 
     def white_inside(b) -> bool:
         """The hole is the white patch: bright and unsaturated (median over its interior)."""
-        m = np.zeros(mask.shape, np.uint8)
+        m: np.ndarray = np.zeros(mask.shape, np.uint8)
         cv2.drawContours(m, [b.hole], -1, 1, thickness=cv2.FILLED)
         m = cv2.erode(m, np.ones((3, 3), np.uint8))
         if m.sum() < 4:
@@ -527,13 +528,14 @@ def detect_markers(rgb: np.ndarray, rig, K: np.ndarray, dist, path: str = "<imag
     holder = max(holders, key=lambda b: b.area)
     if holder.touches_border:
         raise InputError("holder marker touches the image border (partly out of view)", path=path)
+    assert holder.hole is not None              # holders all have one (filtered above)
     hole_poly, hole_fill = _quad4(holder.hole)
     if len(hole_poly) != 4 or hole_fill < 0.85:
         raise InputError("holder marker's white patch is not a clean quadrilateral (marker partly hidden?)",
                          path=path)
 
     # --- orientation from the rig's nominal camera pose
-    centre_h = np.array([0.0, float(hm["centre_y"]), float(rig.section("holder")["depth"]) / 2])
+    centre_h = np.array([0.0, hm.centre_y, rig.holder.depth / 2])
     up_h, right_h = _nominal_directions(rig, K, dist, centre_h)
     outer0 = order_corners(holder.poly, up_h, right_h)
     inner0 = order_corners(hole_poly, up_h, right_h)
@@ -547,18 +549,18 @@ def detect_markers(rgb: np.ndarray, rig, K: np.ndarray, dist, path: str = "<imag
     holder_inner = Quad(ic, inner0, holder.hole, holder.hole_area, isamp, irms)
 
     # --- cylinder markers: solid quads of the predicted size, three in a row
-    cm = rig.section("cylinder_markers")
-    side_ratio = float(cm["side"]) / float(hm["outer_width"])
+    cm = rig.cylinder_markers
+    side_ratio = cm.side / hm.outer_width
     expect = (side_ratio * side_out) ** 2
     cands = [b for b in blobs if b is not holder and len(b.poly) == 4 and b.fill > 0.8
              and b.hole_area < 0.1 * b.area and 0.25 * expect < b.area < 4.0 * expect and not b.touches_border]
-    n_needed = int(cm["count"])
+    n_needed = cm.count
     if len(cands) < n_needed:
         seen = len([b for b in blobs if b is not holder])
         raise InputError(f"cylinder markers: found {len(cands)} of {n_needed} red squares of the expected size "
                          f"(~{np.sqrt(expect):.0f} px side; {seen} other red regions) - a marker is hidden, "
                          f"out of view or not lit", path=path)
-    centre_c = np.array([0.0, float(cm["centre_height"]), float(rig.cylinder_radius)])
+    centre_c = np.array([0.0, cm.centre_height, rig.cylinder_radius])
     up_c, right_c = _nominal_directions(rig, K, dist, centre_c)
     best = _best_row(cands, n_needed, side_ratio * side_out, path)
     best.sort(key=lambda b: float(np.mean(b.poly, axis=0) @ (right_c / np.linalg.norm(right_c))))
@@ -579,6 +581,7 @@ def refine_cylinder_arcs(det: MarkerDetection, arcs_ideal: list, K: np.ndarray, 
     bottom arcs predicted by a first pose: ``arcs_ideal[k]`` = (top, bottom)
     arcs of marker k projected into the undistorted image (N, 2). Updates
     ``det.cylinder`` in place."""
+    assert det.signal is not None, "refine_cylinder_arcs needs the detection's signal image"
     for k, q in enumerate(det.cylinder):
         ic = _ideal(q.corners, K, dist)
         top, bottom = arcs_ideal[k]
@@ -609,7 +612,7 @@ def _best_row(cands: list, n: int, side_px: float, path: str) -> list:
                 + np.mean(np.abs(gaps - 2.0)) + abs(np.log(size / side_px)))
         if cost < best_cost:
             best, best_cost = list(combo), cost
-    if best_cost > 3.0:
+    if best is None or best_cost > 3.0:        # best is None only while best_cost is inf
         raise InputError(f"cylinder markers: no {n} red squares form the expected row (best match cost "
                          f"{best_cost:.2f}); a marker is hidden or something red is in view", path=path)
     return best

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -108,11 +109,11 @@ def cylinder_edges(rig, segments: int = 32) -> list[np.ndarray]:
     marker top, right, bottom, left: top and bottom are arcs of the cylinder
     (``segments`` chords each; sag < 1e-3 mm), left and right straight lines
     along its axis (thesis eq. 4.22-4.24 geometry)."""
-    cm = rig.section("cylinder_markers")
+    cm = rig.cylinder_markers
     r = cylinder_marker_radius(rig)
     a = cylinder_marker_angles(rig)
-    hu = cm["centre_height"] + cm["side"] / 2
-    hl = cm["centre_height"] - cm["side"] / 2
+    hu = cm.centre_height + cm.side / 2
+    hl = cm.centre_height - cm.side / 2
 
     def arc(a0, a1, y):
         s = np.linspace(a0, a1, segments + 1)
@@ -122,7 +123,7 @@ def cylinder_edges(rig, segments: int = 32) -> list[np.ndarray]:
         return np.array([[r * np.sin(ang), y0, r * np.cos(ang)], [r * np.sin(ang), y1, r * np.cos(ang)]])
 
     out = []
-    for k in range(int(cm["count"])):
+    for k in range(cm.count):
         a0, a1 = a[2 * k], a[2 * k + 1]
         # top: UL->UR, right: UR->LR, bottom: LR->LL, left: LL->UL (as SIDES)
         out += [arc(a0, a1, hu), line(a1, hu, hl), arc(a1, a0, hl), line(a0, hl, hu)]
@@ -449,9 +450,9 @@ def marker_poses(lin: np.ndarray, cfa, rig, K: np.ndarray, dist, path: str = "<i
             for k in range(len(det.cylinder))]
     refine_cylinder_arcs(det, arcs, K, dist)
     Rc, tc, rms_c = pnp(obj_c, det.cylinder_image_points(), K, dist, False, "cylinder markers", path)
-    out = {"detection": det,
-           "holder": dict(_pose_dict(Rh, th), corner_pnp=_pose_dict(Rh, th), reprojection_rms_px=rms_h),
-           "cylinder": dict(_pose_dict(Rc, tc), corner_pnp=_pose_dict(Rc, tc), reprojection_rms_px=rms_c)}
+    out: dict[str, Any] = {"detection": det,
+                           "holder": dict(_pose_dict(Rh, th), corner_pnp=_pose_dict(Rh, th), reprojection_rms_px=rms_h),
+                           "cylinder": dict(_pose_dict(Rc, tc), corner_pnp=_pose_dict(Rc, tc), reprojection_rms_px=rms_c)}
     if refine:
         frame_px = 0.5 * (np.sqrt(det.holder_outer.area) - np.sqrt(det.holder_inner.area))
         half_h = float(np.clip(0.4 * frame_px, 2.5, 15.0))
@@ -560,19 +561,35 @@ def geometry_to_json(obj):
     return obj
 
 
+GEOMETRY_FORMAT = "glossrig geometry calibration"
+
+
 def save_geometry(result: dict, path: str | Path, overwrite: bool = False) -> Path:
     """Write :func:`calibrate_capture`'s result as JSON (atomically; refuses
     to replace a file unless ``overwrite``)."""
-    from glossrig.core.capture import atomic_write_json
+    from glossrig.core.atomic import atomic_write_json
 
     path = Path(path)
     if path.exists() and not overwrite:
         raise InputError("file exists; refusing to overwrite (use --force)", path=path)
-    doc = {"format": "glossrig geometry calibration", "version": 1, "created": datetime.now(timezone.utc).isoformat(),
+    doc = {"format": GEOMETRY_FORMAT, "version": 1, "created": datetime.now(timezone.utc).isoformat(),
            "convention": "x_cam = R x + t (mm); cylinder_in_holder: x_holder = R x_cyl + t_mm"}
     doc.update(geometry_to_json(result))
     atomic_write_json(path, doc)
     return path
+
+
+def load_geometry(path: str | Path) -> dict:
+    """The document of a geometry calibration written by :func:`save_geometry` (poses as
+    nested lists, ``convention`` stating the frames): the one reader of the file. Errors
+    name the file."""
+    from glossrig.core.toml_input import read_json
+
+    path = Path(path)
+    d = read_json(path, "geometry calibration")
+    if not isinstance(d, dict) or d.get("format") != GEOMETRY_FORMAT:
+        raise InputError(f"not a glossrig geometry calibration (format must be {GEOMETRY_FORMAT!r})", path=path)
+    return d
 
 
 # ------------------------------------------------------------ diagnostic
@@ -622,7 +639,7 @@ def draw_diagnostic(rgb: np.ndarray, det: MarkerDetection, res: dict, rig, K: np
     full = img.copy()
     overlay(full, thick=1)
     # holder axes at the holder origin; cylinder axes on its axis at the marker band
-    band = np.array([0.0, float(rig.section("cylinder_markers")["centre_height"]), 0.0])
+    band = np.array([0.0, rig.cylinder_markers.centre_height, 0.0])
     for key, at, length in (("holder", np.zeros(3), 20.0), ("cylinder", band, 15.0)):
         R, t = res[key]["R"], res[key]["t_mm"]
         cv2.drawFrameAxes(full, K, dist, cv2.Rodrigues(R)[0], t + R @ at, length, 2)

@@ -189,7 +189,7 @@ def _tiff_info(path: Path, data: bytes | None = None) -> tuple[ExifInfo, str | N
                         return ExifInfo(), (f"file is truncated: image data runs to byte {end} "
                                             f"but the file has only {size} bytes"), None
                 if getattr(page, "subifds", None):
-                    stack.extend(page.pages)
+                    stack.extend(page.pages or ())     # not None: the page has SubIFDs
     except tifffile.TiffFileError as e:
         if str(e).startswith("not a TIFF"):   # another raw container (CR3, RAF...): LibRaw decides
             return ExifInfo(), None, None
@@ -224,8 +224,9 @@ def read_exif(path: str | Path) -> ExifInfo:
     if not path.is_file():
         raise InputError("raw file not found", path=path)
     info, truncated, unparsed = _tiff_info(path)
-    if truncated or unparsed:
-        raise InputError(truncated or unparsed, path=path)
+    problem = truncated or unparsed
+    if problem:
+        raise InputError(problem, path=path)
     return info
 
 

@@ -98,21 +98,13 @@ class HdrNoise:
 
     @classmethod
     def from_rig(cls, rig, led_rel: float = 0.01) -> HdrNoise:
-        """From the rig file's ``[sensor]``, ``[camera]``, ``[leds]`` and ``[exposures]`` sections."""
-        try:
-            sen = rig.section("sensor")
-            k = [float(x) for x in sen["electrons_per_radiance_s_f11"]]
-            e_per_dn = float(sen["electrons_per_dn_iso100"]) * 100.0 / rig.sequence_iso
-            full = float(sen["full_well_e"])
-            read = float(sen["read_noise_e"])
-            dark = float(sen.get("dark_current_e_s", 0.0))
-            intensity = float(rig.section("leds")["radiant_intensity_W_sr"])
-        except (KeyError, TypeError, ValueError, IndexError) as e:
-            raise InputError(f"HDR noise model needs sensor.electrons_per_radiance_s_f11 (R, G, B), "
-                             f"electrons_per_dn_iso100, full_well_e, read_noise_e and "
-                             f"leds.radiant_intensity_W_sr ({e})", path=rig.path) from None
-        if len(k) != 3 or min(k) <= 0 or e_per_dn <= 0 or full <= 0 or intensity <= 0 or read < 0:
-            raise InputError("HDR noise model: sensor and LED figures must be positive", path=rig.path)
+        """From the rig file's ``[sensor]``, ``[camera]``, ``[leds]`` and ``[exposures]`` sections
+        (checked by :func:`glossrig.core.rig.load_rig`)."""
+        sen = rig.sensor
+        k = sen.electrons_per_radiance_s_f11
+        e_per_dn = sen.electrons_per_dn_iso100 * 100.0 / rig.sequence_iso
+        full, read, dark = sen.full_well_e, sen.read_noise_e, sen.dark_current_e_s
+        intensity = rig.lighting.radiant_intensity_W_sr
         cam = rig.camera
         span_dn = cam.white_level - max(cam.black_level)
         if not (0 <= led_rel < 1):

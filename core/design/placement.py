@@ -60,6 +60,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from glossrig.core.atomic import atomic_write
 from glossrig.core.design import coverage as cov
 from glossrig.core.design import fisher as fi
 from glossrig.core.errors import InputError
@@ -107,11 +108,7 @@ class MountingLimits:
 
 def board_height(rig) -> float:
     """y of the board's top face: the bottom of the cylinder holder box (rig file ``[holder]``)."""
-    h = rig.section("holder")
-    try:
-        return float(h["top"]) - float(h["height"])
-    except (KeyError, TypeError, ValueError):
-        raise InputError("holder.top and holder.height are needed for the board height", path=rig.path) from None
+    return rig.holder.top - rig.holder.height
 
 
 def mount_position(angle_deg: float, height_mm: float, distance_mm: float) -> np.ndarray:
@@ -140,11 +137,8 @@ def shadow_points(rig, n_around: int = 13, n_up: int = 3) -> tuple[np.ndarray, n
 
 
 def _holder_box(rig) -> tuple[np.ndarray, np.ndarray]:
-    h = rig.section("holder")
-    try:
-        w, d, top, hh = (float(h[k]) for k in ("width", "depth", "top", "height"))
-    except (KeyError, TypeError, ValueError):
-        raise InputError("holder.width, depth, top and height are needed for the shadow check", path=rig.path) from None
+    h = rig.holder
+    w, d, top, hh = h.width, h.depth, h.top, h.height
     return np.array([-w / 2, top - hh, -d / 2]), np.array([w / 2, top, d / 2])
 
 
@@ -288,7 +282,7 @@ class EvalSetup:
     fisher_pixels: cov.PixelGeometry
     materials: list[tuple[str, WardParams]]
     rotations: tuple[int, ...]
-    noise: object
+    noise: fi.RelativeNoise | fi.HdrNoise
     weighting: str = "fisher"
     fisher_rows: int = 6000
     diffuse_rows: int = 1500
@@ -299,7 +293,7 @@ class LedEval:
     """One LED mount alone: occupied bins at rotation 0 and Fisher information
     per (candidate rotation, material)."""
 
-    position: tuple[float, float, float]
+    position: tuple[float, ...]  # (x, y, z) mm
     base: np.ndarray      # int64 theta part of the anisotropic code (rotation-free)
     pi: np.ndarray        # int16 phi_in bin at rotation 0
     po: np.ndarray        # int16 phi_out bin at rotation 0
@@ -528,6 +522,7 @@ class Pool:
 
     def errors_from_information(self, I: np.ndarray) -> np.ndarray:
         """(n_mat,) geometric-mean relative errors (weak prior added)."""
+        assert self.priors is not None          # set in __post_init__
         out = np.empty(len(self.materials))
         for j in range(len(self.materials)):
             c = fi.covariance_from_information(I[j], self.masks[j], self.priors[j])
@@ -538,6 +533,7 @@ class Pool:
     def batch_errors(self, I_batch: np.ndarray) -> np.ndarray:
         """Geometric-mean relative errors for a batch of information matrices
         (n, n_mat, 5, 5) -> (n, n_mat), vectorised (prior added)."""
+        assert self.priors is not None          # set in __post_init__
         n = I_batch.shape[0]
         out = np.empty((n, len(self.materials)))
         for j in range(len(self.materials)):
@@ -566,6 +562,7 @@ class Pool:
         e = np.mean(np.log(np.asarray(errors) / self.ref_errors))
         s = math.log(max(cov_frac, 1e-300) / self.ref_coverage) - self.lam * float(e)
         if self.iso_weight:
+            assert iso_frac is not None, "score_parts needs iso_frac when iso_weight is set"
             s += self.iso_weight * math.log(max(iso_frac, 1e-300) / self.ref_iso)
         return s
 
@@ -771,6 +768,7 @@ def parse_materials(spec: str) -> list[tuple[str, WardParams]]:
         m = parse_material(part)
         if m.kind != "ward":
             raise InputError(f"material {part!r} is {m.kind}; the expected parameter error needs an extended-Ward material")
+        assert m.ward is not None               # a Ward material has its parameters
         out.append((m.label, m.ward))
     if not out:
         raise InputError("no target material given")
@@ -826,10 +824,10 @@ def optimise(rig, n_leds: int, materials, runner, space: SearchSpace = SearchSpa
         raise InputError(f"lambda must be >= 0, got {lam}")
     if not (math.isfinite(iso_weight) and iso_weight >= 0):
         raise InputError(f"isotropic-coverage weight must be >= 0, got {iso_weight}")
-    ref_rots = [float(r) for r in rig.sample_rotations]
-    if any(r != int(r) for r in ref_rots):
-        raise InputError(f"the reference rig's rotations must be whole degrees, got {ref_rots}", path=rig.path)
-    ref_rots = [int(r) for r in ref_rots]
+    rig_rots = [float(r) for r in rig.sample_rotations]
+    if any(r != int(r) for r in rig_rots):
+        raise InputError(f"the reference rig's rotations must be whole degrees, got {rig_rots}", path=rig.path)
+    ref_rots = [int(r) for r in rig_rots]
     rotations = tuple(sorted(set(space.rotations_deg) | set(ref_rots)))
     setup = make_setup(rig, materials, rotations, coverage_scale, fisher_scale, noise)
     mounts = space.mounts()
@@ -983,8 +981,8 @@ def write_rig_toml(template_path, positions, rotations, out_path, header: str = 
     if description is not None:
         text = re.sub(r'^description = "[^"]*"', f'description = "{description}"', text, count=1, flags=re.M)
     text = header + text
-    tmp = out_path.with_suffix(out_path.suffix + ".tmp")
-    tmp.write_text(text)
-    load_rig(tmp)                     # what we wrote must load
-    tmp.replace(out_path)
-    return out_path
+    def fill(tmp: Path) -> None:
+        tmp.write_text(text)
+        load_rig(tmp)                 # what we wrote must load
+
+    return atomic_write(out_path, fill)

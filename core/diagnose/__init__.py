@@ -10,7 +10,6 @@ threshold. :mod:`.report` writes report.json and report.md.
 """
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -23,24 +22,22 @@ from glossrig.core.diagnose.data import load_brdf, load_frames
 from glossrig.core.diagnose.frames import FrameSet, frame_causes
 from glossrig.core.diagnose.report import write_report
 from glossrig.core.diagnose.residuals import brdf_structure, frame_structure
+from glossrig.core.diagnose.unexplained import unexplained
 
 #: base-model median |relative error| above which a given fit cannot be this capture's material
 FIT_MISMATCH = 0.5
 
 
 def load_fit(path):
-    """Luminance Ward parameters of a ``glossrig fit`` JSON."""
-    from glossrig.core.models.ward import WardParams
+    """Luminance Ward parameters of a ``glossrig fit`` JSON (read by the one reader,
+    :func:`glossrig.core.fitting.export.read_fit_json`; errors name the file)."""
+    from glossrig.core.fitting.export import read_fit_json
 
     p = Path(path)
-    try:
-        d = json.loads(p.read_text())
-        lum = d["luminance"]
-        return WardParams(**{k: float(lum[k]) for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")})
-    except FileNotFoundError:
-        raise InputError("fit file not found", path=p) from None
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise InputError(f"not a glossrig fit file (luminance Ward parameters): {e}", path=p) from None
+    lum = read_fit_json(p).fits.get("luminance")
+    if lum is None:
+        raise InputError("the fit has no luminance channel (luminance Ward parameters needed)", path=p)
+    return lum.params
 
 
 def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: float = 0.8,
@@ -93,7 +90,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     causes = causes + fcauses
     log(f"frame-space causes done ({time.time() - t0:.0f} s)")
     structure = {"brdf": brdf_structure(m), "frames": fstructure}
-    base = {}
+    base: dict[str, float] = {}
     for c in causes:
         base.setdefault(c.space, c.base_error)
     meta = {"sample": str(sample_dir), "reference": str(reference_dir), "camera": str(camera), "lamps": str(lamps),
@@ -102,4 +99,8 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
             "splits": {"brdf": "leave one LED out (per-LED parameters or one LED: the two halves of the pixel rows)",
                        "frames": "even / odd exposure index", "pixels": "even / odd exposure index (pixel set found under every LED)"},
             "time_s": time.time() - t0}
-    return write_report(out, causes, base, structure, meta, plots=plots)
+    open_world = unexplained(m, fstructure)
+    log(f"base model's normalised held-out error {m.calibration.get('heldout_error', float('nan')):.3g}; "
+        f"residual structure tested against {len(open_world)} variables")
+    return write_report(out, causes, base, structure, meta, plots=plots, unexplained=open_world,
+                        calibration=m.calibration)

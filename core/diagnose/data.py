@@ -35,10 +35,10 @@ class BrdfData:
     albedo: float
     image_size: tuple[int, int]   # full image (width, height)
     principal_point: tuple[float, float]
-    patch_uv: dict                # rotation -> (u, v) of the white patch centre (full image)
+    patch_uv: dict[float, tuple[float, float]]  # rotation -> (u, v) of the white patch centre (full image)
     lamps: dict                   # LED id -> lamp position (holder frame, mm)
     material_fixed: bool = False  # True when the material fit comes from another capture
-    camera: tuple = None          # (K, distortion) of the camera calibration
+    camera: tuple | None = None   # (K, distortion) of the camera calibration
     reference_brdf: object = None  # callable(table) -> (n, 3) RGB BRDF of the reference, when known
 
 
@@ -94,9 +94,9 @@ def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progre
     t["f"] = _lum(t)
     t["S"] = _lum(t, "S_")
     t["R"] = albedo / np.pi * t["S"] / np.where(t["f"] > 0, t["f"], np.nan)
-    # relative variance of the measured value: the sample's (green dominates luminance);
-    # the reference is brighter and its noise is left to the model floor of the residuals
-    t["relvar"] = t["relvar_S_g"]
+    # relative variance of the measured luminance: sample and reference HDR variances of each
+    # channel (a ratio's relative variances add), combined with the Rec. 709 weights
+    t["relvar"] = luminance_relvar(t, mr.table)
     t = t[np.isfinite(t[["f", "S", "R"]]).all(axis=1) & (t.R > 0)].reset_index(drop=True)
     if len(t) < 200:
         raise InputError(f"only {len(t)} usable BRDF samples: too few to diagnose", path=Path(sample_dir))
@@ -111,6 +111,32 @@ def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progre
                     camera=camera_arrays(cam))
 
 
+def luminance_relvar(t: pd.DataFrame, reference: pd.DataFrame) -> np.ndarray:
+    """Relative variance of each row's luminance BRDF ``y = sum_c LUMA_c f_c`` from the HDR
+    variances of the sample (``relvar_S_<c>``) and of the reference row that
+    :func:`~glossrig.core.extraction.extract.diffuse_normalize` divided by (its nearest
+    geometry in the same LED and rotation): ``var y = sum_c LUMA_c^2 f_c^2 (var S_c / S_c^2 +
+    var R_c / R_c^2)``. A missing channel (NaN) contributes nothing."""
+    from scipy.spatial import cKDTree
+
+    from glossrig.core.extraction.extract import _dirs
+
+    rel_r = np.full((len(t), 3), np.nan)
+    for (led, rot), idx in t.groupby(["led", "rotation"]).indices.items():
+        r = reference[(reference.led == led) & (reference.rotation == rot)]
+        if r.empty:
+            continue
+        _, j = cKDTree(_dirs(r)).query(_dirs(t.iloc[idx]))
+        for k, c in enumerate("rgb"):
+            R = r[c].to_numpy(float)[j]
+            rel_r[idx, k] = r[f"var_{c}"].to_numpy(float)[j] / np.maximum(R, 1e-12) ** 2
+    f = t[["r", "g", "b"]].to_numpy(float)
+    rel_s = t[["relvar_S_r", "relvar_S_g", "relvar_S_b"]].to_numpy(float)
+    var = np.nansum((LUMA * f) ** 2 * (rel_s + np.nan_to_num(rel_r, nan=0.0)), axis=1)
+    y = np.nansum(LUMA * f, axis=1)
+    return var / np.maximum(y, 1e-12) ** 2
+
+
 def _seconds(ts: str) -> float:
     try:
         return datetime.fromisoformat(ts).timestamp()
@@ -122,9 +148,7 @@ def load_frames(sample_dir, measured: Measured) -> FrameData:
     """Raw DN of each LED's exposure sequence (first repeat) in the measured crop."""
     man = load_manifest(sample_dir)
     rig = load_rig(man.rig_path())
-    sec = rig.raw.get("sensor") or {}
-    if "electrons_per_dn_iso100" not in sec or "read_noise_e" not in sec:
-        raise InputError("rig has no [sensor] electrons_per_dn_iso100 / read_noise_e", path=rig.path)
+    sen = rig.sensor
     seq_all = man.select("sequence")
     t0 = min(_seconds(im.time) for im in seq_all)
     leds, white, iso = [], None, None
@@ -141,6 +165,8 @@ def load_frames(sample_dir, measured: Measured) -> FrameData:
                                   np.array([im.exposure_s for im in seq]),
                                   np.array([_seconds(im.time) - t0 for im in seq]), black, f0.origin,
                                   [im.file for im in seq]))
-    k = float(sec["electrons_per_dn_iso100"]) * 100.0 / float(iso)
-    read = float(np.sqrt((float(sec["read_noise_e"]) / k) ** 2 + 1.0 / 12.0))
+    if white is None or iso is None:
+        raise InputError("no single-LED sequence frames with an ISO in the manifest", path=man.path)
+    k = sen.electrons_per_dn_iso100 * 100.0 / float(iso)
+    read = float(np.sqrt((sen.read_noise_e / k) ** 2 + 1.0 / 12.0))
     return FrameData(leds, float(white), k, read)

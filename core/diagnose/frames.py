@@ -166,7 +166,7 @@ def _train_cost(fs, pred_fn, fold):
     return ss / max(n, 1)
 
 
-def _frame_cause(fs: FrameSet, name, doc, pname, unit, bounds, make_pred, grid_n=13) -> CauseResult:
+def _frame_cause(fs: FrameSet, name, doc, pname, unit, bounds: tuple[float, float], make_pred, grid_n=13) -> CauseResult:
     """A global scalar cause in frame space: fitted per fold on the training exposures."""
     base_err = ext_err = 0.0
     gains, est = [], []
@@ -219,7 +219,7 @@ def _drift_cause(fs: FrameSet) -> CauseResult:
     bounds = (-0.02, 0.02)
     base_err = ext_err = 0.0
     gains = []
-    per_led = {}
+    per_led: dict[str, list[float]] = {}
     for fold in fs.folds():
         tr, te = fold
         e0 = _score(fs, lambda i, M: _linear_pred(fs, i, M), fold)

@@ -69,7 +69,7 @@ class Geometry:
         cam = next(iter(self.geo.values())).surface.camera_centre
         self.patch_n = n if float(n @ (cam - self.patch)) > 0 else -n
         self.E0 = self._irradiance(self.lamps_of(self.led), self.pts, self.nrm)
-        self._radius_cache = {}
+        self._radius_cache: dict = {}
 
     def lamps_of(self, led, offsets=None):
         P = np.array([self.lamps[int(k)] for k in led]) if np.ndim(led) else self.lamps[int(led)]
@@ -190,11 +190,11 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
         gains.append((e0 - e1) / e0)
     xa = fit(allrows)
     spread = np.abs(fits[0] - fits[1]) / 2
-    prof = {"grid": scales.tolist(), "error": (prof / n_all).tolist(), "along": "scale of the fitted parameters"}
+    profile = {"grid": scales.tolist(), "error": (prof / n_all).tolist(), "along": "scale of the fitted parameters"}
     r = CauseResult(name, "brdf", doc, dict(params_of(xa), unit=unit, fold_estimates=[params_of(f) for f in fits]),
-                    params_of(spread), ext_res / n_all, base_res / n_all, gains, len(x0), profile=prof,
+                    params_of(spread), ext_res / n_all, base_res / n_all, gains, len(x0), profile=profile,
                     magnitude=magnitude(xa))
-    e = np.asarray(prof["error"])
+    e = np.asarray(profile["error"])
     if (e.max() - e.min()) / max(e.min(), 1e-12) < GAIN_THRESHOLD:
         r.identifiable = False
         r.note = ("held-out error varies by less than 2 % along the fitted parameters (scale 0-2): "

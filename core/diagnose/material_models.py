@@ -32,6 +32,7 @@ the diagnose catalogue.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -91,7 +92,7 @@ def ward_lobe(theta_in, phi_in, theta_out, phi_out, theta_h, phi_h, theta_d, ax,
     return L * schlick_ratio(theta_d, n)
 
 
-LOBES = {"ward": ward_lobe, "ggx": ggx_lobe}
+LOBES: dict[str, Callable[..., np.ndarray]] = {"ward": ward_lobe, "ggx": ggx_lobe}
 
 
 def renormalise(rgb, reference_rgb, albedo: float = 0.8):
@@ -177,18 +178,19 @@ def fit_lobe(a: dict, y, W, kind: str = "ggx", start=(0.1, 0.1, 0.0), n=None, fi
     lb = [math.log(1e-3)] * 2 + [-np.inf] + ([1.05] if fit_n else [])
     ub = [math.log(1.0)] * 2 + [np.inf] + ([4.0] if fit_n else [])
     best = None
-    for x_start in (x0, [x0[1], x0[0], x0[2] + math.pi / 2] + x0[3:]):
+    for x_init in (x0, [x0[1], x0[0], x0[2] + math.pi / 2] + x0[3:]):
         # a start from another model's fit may lie outside this lobe's range (on the white paper the
         # Ward fit ends with rho_s ~ 0 and alpha_y = 1e-4, which nothing constrains): start a factor 2
         # inside the range, not on a bound, where the lobe is degenerate (a spike or flat), NNLS sets
         # rho_s = 0 and the gradient in alpha vanishes
-        x_start = np.array(x_start, float)
+        x_start = np.array(x_init, float)
         x_start[:2] = np.clip(x_start[:2], lb[0] + math.log(2), ub[0] - math.log(2))
         if fit_n:
             x_start[3] = min(max(x_start[3], lb[3]), ub[3])
         r = least_squares(res, x_start, bounds=(lb, ub), x_scale=[0.3, 0.3, 0.3] + ([0.3] if fit_n else []))
         if best is None or r.cost < best.cost:
             best = r
+    assert best is not None             # the loop ran twice
     ax, ay, rot, nn = shape(best.x)
     if ax < ay:     # canonical form of glossrig fit: alpha_x >= alpha_y, rotation in [0, pi)
         ax, ay, rot = ay, ax, rot + np.pi / 2

@@ -50,7 +50,7 @@ def brdf_structure(m: BrdfModel) -> dict:
 
 
 def frame_structure(fs: FrameSet) -> dict:
-    xs = {"exposure_s (log10)": [], "capture order (min from sequence middle)": [], "signal (log10 DN)": []}
+    xs: dict[str, list[np.ndarray]] = {"exposure_s (log10)": [], "capture order (min from sequence middle)": [], "signal (log10 DN)": []}
     rs = []
     for i in range(len(fs.Z)):
         M = fs.ok[i]

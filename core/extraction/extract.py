@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -39,6 +40,7 @@ from glossrig.core.progress import progress_enabled
 from glossrig.core.calibration.markers import holder_marker_corners
 from glossrig.core.calibration.raw import even_crop
 from glossrig.core.rig import Rig, load_rig
+from glossrig.core.samples import CHANNEL_WEIGHT_COLUMNS
 
 PATCH_SHRINK = 0.2        # keep the inner 60 % of the white patch (away from the red frame)
 
@@ -54,7 +56,7 @@ class RotationGeometry:
     surface: SurfaceSamples       # block centres seeing the sample (holder frame)
     crop: tuple[int, int, int, int]
     patch_mask: np.ndarray        # bool, crop-sized: white patch pixels
-    block_index: tuple[np.ndarray, np.ndarray] = field(repr=False, default=None)  # (row, col) in crop blocks
+    block_index: tuple[np.ndarray, np.ndarray] | None = field(repr=False, default=None)  # (row, col) in crop blocks
 
 
 def camera_arrays(cam: CameraCalibration):
@@ -75,8 +77,9 @@ def rotation_geometry(man: Manifest, rig: Rig, cam: CameraCalibration, rotation:
     R_cyl, t_cyl = poses["cylinder_in_holder"]["R"], poses["cylinder_in_holder"]["t_mm"]
     path = man.folder / poses["file"]
     # Blocks: first find the sample's pixel bounding box at full resolution (coarse grid).
+    gu, gv = np.meshgrid(np.arange(0, w, 4.0), np.arange(0, h, 4.0))
     coarse = surface_samples(K, dist, (w, h), R_hold, t_hold, R_cyl, t_cyl, rig.cylinder_radius,
-                             rig.sample_height, pixels=tuple(np.meshgrid(np.arange(0, w, 4.0), np.arange(0, h, 4.0))))
+                             rig.sample_height, pixels=(gu, gv))
     if len(coarse.u) == 0:
         raise InputError("no pixel sees the sample with the calibrated poses", path=path)
     sx0, sx1 = int(coarse.u.min()) - 8, int(coarse.u.max()) + 8
@@ -104,10 +107,24 @@ def rotation_geometry(man: Manifest, rig: Rig, cam: CameraCalibration, rotation:
     return geom
 
 
+class LedValues(NamedTuple):
+    """One LED's blocks (N, 3 channels): patch-normalised HDR ``values`` and their
+    ``variance`` (NaN where the channel has no valid value), the channel's ``status``
+    (a :data:`glossrig.core.radiometry.hdr.STATUS_REASONS` key; see :func:`block_status`)
+    and ``exposure_to_fix`` (s; :func:`glossrig.core.radiometry.hdr.exposure_to_fix`,
+    NaN where valid or unknown)."""
+
+    values: np.ndarray
+    variance: np.ndarray
+    status: np.ndarray
+    exposure_to_fix: np.ndarray
+
+
 def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
-               estimator: str = "ml") -> tuple[np.ndarray, np.ndarray]:
-    """Patch-normalised HDR values (N_blocks, 3) and their variances for one LED
-    (thesis eq. 4.31-4.50 through :mod:`glossrig.core.radiometry.hdr` and :mod:`glossrig.core.radiometry.patch`)."""
+               estimator: str = "ml") -> LedValues:
+    """Patch-normalised HDR values (N_blocks, 3), their variances and per-channel
+    validity for one LED (thesis eq. 4.31-4.50 through :mod:`glossrig.core.radiometry.hdr`
+    and :mod:`glossrig.core.radiometry.patch`)."""
     seq = [im for im in man.select("sequence", rotation=geom.rotation) if im.leds == [led]]
     if not seq:
         raise InputError(f"no sequence for LED {led} at rotation {geom.rotation:g} deg", path=man.path)
@@ -116,17 +133,26 @@ def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
     cfa = frames[0].cfa
     if estimator == "ml":
         res = hdrmod.hdr_from_stack(stack, hdrmod.NoiseModel.from_rig(rig, iso=seq[0].iso))
-        rate, var = res.rate, res.variance
+        rate, var, status = res.rate, res.variance, res.status
     elif estimator == "thesis":
         images, _ = hdrmod.neighbour_correct(stack.images, stack.exposure_s, clipped=stack.clipped, method="thesis")
         rate = hdrmod.hdr_thesis(images, stack.exposure_s)
         rate = np.where(rate > 0, rate, np.nan).astype(np.float32)
         noise = hdrmod.NoiseModel.from_rig(rig, iso=seq[0].iso)
         var = noise.variance(rate, stack.repeats).astype(np.float32)   # nominal, for weights only
+        # eq. 4.44 has no reason for its 0: saturated at the shortest exposure, else too dark
+        status = np.where(np.isfinite(rate), hdrmod.VALID,
+                          np.where(stack.clipped[0] | (stack.images[0] >= hdrmod.HI), hdrmod.TOO_BRIGHT,
+                                   hdrmod.TOO_DARK)).astype(np.uint8)
     else:
         raise InputError(f"HDR estimator must be 'ml' or 'thesis', got {estimator!r}")
+    tfix = hdrmod.exposure_to_fix(stack, status)
     norm = normalise_by_patch(rate, geom.patch_mask, cfa, variance=var, name=str(man.folder / seq[0].file))
-    return block_values(norm.image, norm.variance, cfa, geom.block_index)
+    assert norm.variance is not None        # a variance went in
+    vals, vvar = block_values(norm.image, norm.variance, cfa, geom.block_index)
+    st, fix = block_status(status, tfix, cfa, geom.block_index)
+    st[~np.isfinite(vals) & (st == hdrmod.VALID)] = hdrmod.TOO_FEW      # no valid pixel reason: say "too few"
+    return LedValues(vals, vvar, st, fix)
 
 
 def block_values(rate: np.ndarray, var: np.ndarray, cfa, block_index) -> tuple[np.ndarray, np.ndarray]:
@@ -159,11 +185,61 @@ def block_values(rate: np.ndarray, var: np.ndarray, cfa, block_index) -> tuple[n
     return vals / cnt, vvar / cnt ** 2
 
 
+def block_status(status: np.ndarray, exposure_to_fix: np.ndarray, cfa, block_index) -> tuple[np.ndarray, np.ndarray]:
+    """Per block and channel (N, 3): why the channel has no value, and the exposure that
+    would have given it one, from the pixels :func:`block_values` reads.
+
+    A block's channel is read by bilinear interpolation from the 2 x 2 pixels of each of
+    its CFA planes nearest the block centre, so it is missing when one of them is: its
+    status is TOO_BRIGHT if one of them is saturated, else TOO_DARK if one is too dark,
+    else TOO_FEW (:data:`glossrig.core.radiometry.hdr.STATUS_REASONS`; VALID when all
+    are valid). Its exposure to fix is the one for the mean rate of those pixels of that
+    status (the harmonic mean of their exposures to fix; a single pixel's is noisy;
+    NaN when none is known)."""
+    cid = np.asarray(cfa)
+    bi, bj = block_index
+    n = len(bi)
+    bright = np.zeros((n, 3), bool)
+    dark = np.zeros((n, 3), bool)
+    few = np.zeros((n, 3), bool)
+    inv = {code: np.zeros((n, 3)) for code in (hdrmod.TOO_DARK, hdrmod.TOO_BRIGHT)}    # sum of 1 / t_fix
+    cnt = {code: np.zeros((n, 3)) for code in (hdrmod.TOO_DARK, hdrmod.TOO_BRIGHT)}
+    for di in range(2):
+        for dj in range(2):
+            c = int(cid[di, dj])
+            plane = status[di::2, dj::2]
+            tplane = exposure_to_fix[di::2, dj::2]
+            h, w = plane.shape
+            for oi in (0, 1):          # the bilinear stencil of the offset (0.5 - di) / 2 (block_values)
+                rows = np.clip(bi - di + oi, 0, h - 1)
+                for oj in (0, 1):
+                    cols = np.clip(bj - dj + oj, 0, w - 1)
+                    sv, tv = plane[rows, cols], tplane[rows, cols]
+                    b_, d_ = sv == hdrmod.TOO_BRIGHT, sv == hdrmod.TOO_DARK
+                    bright[:, c] |= b_
+                    dark[:, c] |= d_
+                    few[:, c] |= sv == hdrmod.TOO_FEW
+                    for code, m in ((hdrmod.TOO_DARK, d_), (hdrmod.TOO_BRIGHT, b_)):
+                        known = m & ~np.isnan(tv)
+                        with np.errstate(divide="ignore"):
+                            inv[code][:, c] += np.where(known, 1.0 / np.where(known, tv, 1.0), 0.0)
+                        cnt[code][:, c] += known
+    st = np.where(bright, hdrmod.TOO_BRIGHT, np.where(dark, hdrmod.TOO_DARK,
+                                                      np.where(few, hdrmod.TOO_FEW, hdrmod.VALID))).astype(np.uint8)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_dark = np.where(cnt[hdrmod.TOO_DARK] > 0, cnt[hdrmod.TOO_DARK] / inv[hdrmod.TOO_DARK], np.nan)
+        t_bright = np.where(cnt[hdrmod.TOO_BRIGHT] > 0, cnt[hdrmod.TOO_BRIGHT] / inv[hdrmod.TOO_BRIGHT], np.nan)
+    fix = np.where(st == hdrmod.TOO_BRIGHT, t_bright, np.where(st == hdrmod.TOO_DARK, t_dark, np.nan))
+    return st, fix
+
+
 @dataclass
 class Measured:
     """One capture measured: ``table`` has a row per (block, LED, rotation) with pixel,
     surface point and normal (holder frame), angles (when lamps were given) and
-    patch-normalised HDR values ``r, g, b`` with variances ``var_r, var_g, var_b``."""
+    patch-normalised HDR values ``r, g, b`` with variances ``var_r, var_g, var_b``
+    (NaN where that channel has no valid value), each channel's ``status_<c>`` and
+    ``fix_s_<c>`` (:class:`LedValues`)."""
 
     table: pd.DataFrame
     rig_path: str
@@ -204,21 +280,23 @@ def measure_capture(folder, cam: CameraCalibration, lamps: dict[int, np.ndarray]
             frames.append(store.load(unit))
             bar.update(1)
             continue
-        vals, var = led_values(man, rig, g, led, estimator)
+        lv = led_values(man, rig, g, led, estimator)
         s = g.surface
         df = pd.DataFrame({"u": np.floor(s.u).astype(np.int32), "v": np.floor(s.v).astype(np.int32)})
         df["led"], df["rotation"] = np.int32(led), float(rot)
         for k, c in enumerate("rgb"):
-            df[c] = vals[:, k]
-            df[f"var_{c}"] = var[:, k]
+            df[c] = lv.values[:, k]
+            df[f"var_{c}"] = lv.variance[:, k]
+            df[f"status_{c}"] = lv.status[:, k]
+            df[f"fix_s_{c}"] = lv.exposure_to_fix[:, k]
         df["x"], df["y"], df["z"] = s.points[:, 0], s.points[:, 1], s.points[:, 2]
         df["nx"], df["ny"], df["nz"] = s.normals[:, 0], s.normals[:, 1], s.normals[:, 2]
         if lamps is not None:
             if led not in lamps:
                 raise InputError(f"lamp positions have no LED {led}")
             ang = sample_angles(s, lamps[led], rot)
-            for k in ANGLE_COLUMNS:
-                df[k] = ang[k]
+            for col in ANGLE_COLUMNS:
+                df[col] = ang[col]
             df["cos_in"], df["cos_out"] = ang["cos_in"], ang["cos_out"]
         if store is not None:
             store.save(unit, df)
@@ -238,7 +316,15 @@ def diffuse_normalize(sample: pd.DataFrame, reference: pd.DataFrame, albedo: flo
     """BRDF values by division with the reference (thesis eq. 4.78):
     f = (albedo / pi) * S / R at the reference's nearest geometry in the same
     (LED, rotation). Rows whose nearest reference sample is farther than
-    ``max_distance`` (chord length of the unit directions, ~1 degree) are dropped."""
+    ``max_distance`` (chord length of the unit directions, ~1 degree) are dropped.
+
+    Per-channel validity (:mod:`glossrig.core.samples`): a channel is NaN where the
+    sample's or the reference's value is missing (or the reference's is not positive);
+    a row is kept while it has one channel. ``weight_<c>`` is the inverse variance of
+    channel c's BRDF value (NaN where missing) and ``weight`` their mean over the row's
+    valid channels, all divided by the mean of ``weight``. The reference's
+    ``status_<c>`` / ``fix_s_<c>`` come along as ``ref_status_<c>`` / ``ref_fix_s_<c>``
+    where the reference table has them (:mod:`glossrig.core.extraction.dynamic_range`)."""
     from scipy.spatial import cKDTree
 
     if not (0 < albedo <= 1):
@@ -254,22 +340,35 @@ def diffuse_normalize(sample: pd.DataFrame, reference: pd.DataFrame, albedo: flo
         s = s[keep].copy()
         rr = r.iloc[idx[keep]]
         w = np.zeros(len(s))
+        nw = np.zeros(len(s))
         for c in "rgb":
             R = rr[c].to_numpy()
             S = s[c].to_numpy()
-            ok = R > 0
-            f = np.where(ok, albedo / np.pi * S / np.where(ok, R, 1.0), np.nan)
-            # relative variance of a ratio: var(S)/S^2 + var(R)/R^2
-            rel = s[f"var_{c}"].to_numpy() / np.maximum(S, 1e-12) ** 2 + rr[f"var_{c}"].to_numpy() / np.maximum(R, 1e-12) ** 2
+            ok = R > 0          # False for a NaN reference value too
+            with np.errstate(invalid="ignore"):
+                f = np.where(ok, albedo / np.pi * S / np.where(ok, R, 1.0), np.nan)
+                # relative variance of a ratio: var(S)/S^2 + var(R)/R^2
+                rel = (s[f"var_{c}"].to_numpy() / np.maximum(S, 1e-12) ** 2
+                       + rr[f"var_{c}"].to_numpy() / np.maximum(R, 1e-12) ** 2)
+                wc = 1.0 / np.maximum(rel * f ** 2, 1e-30)
             s[c] = f
-            w += 1.0 / np.maximum(rel * f ** 2, 1e-30)
-        s["weight"] = w / 3
+            s[f"weight_{c}"] = wc                       # NaN where the channel is missing
+            valid = np.isfinite(f) & np.isfinite(wc)
+            w += np.where(valid, wc, 0.0)
+            nw += valid
+            for k in (f"status_{c}", f"fix_s_{c}"):
+                if k in rr:
+                    s[f"ref_{k}"] = rr[k].to_numpy()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s["weight"] = w / nw
         out.append(s)
     res = pd.concat(out, ignore_index=True)
-    res = res[np.isfinite(res[["r", "g", "b"]]).all(axis=1)]
+    res = res[np.isfinite(res[["r", "g", "b"]]).any(axis=1)]       # a row needs one channel, not all three
     good = (res.theta_in < np.pi / 2) & (res.theta_out < np.pi / 2)
-    res = res[good]
-    res["weight"] = res["weight"] / res["weight"].mean()
+    res = res[good].copy()
+    scale = res["weight"].mean()
+    for k in ("weight", "weight_r", "weight_g", "weight_b"):
+        res[k] = res[k] / scale
     return res
 
 
@@ -324,10 +423,24 @@ def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: di
     r = measure_capture(reference_dir, cam, lamps, estimator=estimator, progress=progress, name="REF_DIR",
                         store=store, unit_prefix="reference-").table
     out = diffuse_normalize(s, r, albedo=albedo)
-    cols = list(ANGLE_COLUMNS) + ["r", "g", "b", "weight", "u", "v", "led", "rotation"]
+    cols = list(ANGLE_COLUMNS) + ["r", "g", "b", "weight", "u", "v", "led", "rotation"] + list(CHANNEL_WEIGHT_COLUMNS)
     res = out[cols].reset_index(drop=True)
+    # which channels ran out of dynamic range, where, and what exposure would have fixed it
+    from glossrig.core.extraction.dynamic_range import dynamic_range_report, log_dynamic_range
+
+    report = dynamic_range_report(s, r, out, exposures={"sample": _exposures(sample_dir),
+                                                        "reference": _exposures(reference_dir)})
+    log_dynamic_range(report)
+    res.attrs["dynamic_range"] = report
     if plots is not None:
+        from glossrig.core.extraction.dynamic_range import write_dynamic_range
         from glossrig.core.extraction.extract_plots import write_plots
 
         write_plots(Path(plots), s, res)
+        write_dynamic_range(Path(plots), report, out)
     return res
+
+
+def _exposures(folder) -> list[float]:
+    """The exposure times (s) of a capture's sequences, shortest first."""
+    return sorted({float(im.exposure_s) for im in load_manifest(folder).select("sequence")})

@@ -1,7 +1,8 @@
 """Gloss fabrication: a target coverage image -> an engraver toolpath (thesis ch. 5, 7.2).
 
 Pipeline (thesis 5.2): coverage image (:mod:`.inputs`; a material map goes through the
-reproduction model's ETN first, :mod:`.etn`, thesis 6.1 and 7.2.2) -> juxtaposed
+reproduction model's ETN first, :func:`glossrig.core.reproduction.model.load_etn`, thesis
+6.1 and 7.2.2) -> juxtaposed
 halftone (:mod:`.halftone`, Babaei & Hersch 2013) -> scratch segments along the
 discrete lines (:mod:`.vectorize`) -> rotation onto the machine's y axis, shift and
 scale (:mod:`.layout`, eq. 5.2-5.3) -> ordered cuts with bed and depth checks

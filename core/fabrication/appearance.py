@@ -79,7 +79,6 @@ than that is ignored).
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -88,8 +87,9 @@ import cv2
 import numpy as np
 
 from glossrig.core.errors import InputError
-from glossrig.core.models.ward import WardParams, check_physical, ward_local
+from glossrig.core.models.ward import WardParams, ward_local
 from glossrig.core.fabrication.machine import ScreenParams
+from glossrig.core.reproduction.model import load_bases
 
 #: thesis Table 6.4, second base: nominal coverage -> fitted effective coverage of the samples
 #: (sample 4/6 was excluded from the thesis's fit)
@@ -126,13 +126,15 @@ class GlossModel:
 def _thesis_bases() -> tuple[WardParams, WardParams]:
     from glossrig.core.models.materials import parse_material
 
-    return parse_material("base_1").ward, parse_material("base_2").ward
+    b1, b2 = parse_material("base_1").ward, parse_material("base_2").ward
+    assert b1 is not None and b2 is not None        # the packaged thesis bases are Ward materials
+    return b1, b2
 
 
 def _inverse_table(etn) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """(nominal, effective) tabulating ``ETN^-1`` on [0, 1], nominal increasing."""
     x = np.linspace(0.0, 1.0, 2001)
-    y = np.clip(np.asarray(etn(x), dtype=np.float64), 0.0, 1.0)
+    y = np.asarray(etn(x), dtype=np.float64)            # clipped to [0, 1]
     if not np.all(np.isfinite(y)):
         raise InputError("ETN is not finite on [0, 1]", path=getattr(etn, "source", None) or None)
     if y[-1] < y[0]:
@@ -145,30 +147,20 @@ def load_gloss_model(model: str | Path | None = None, etn=None) -> GlossModel:
     """The bases and nominal -> effective map for the preview (module docstring).
 
     ``model``: the ``--model`` file, read for ``base1.ward`` and ``base2.ward``
-    (``ReproductionModel.to_json``'s layout); ``etn``: its ETN (:func:`.etn.load_etn`),
-    which the caller has already read and checked. Malformed bases raise ``InputError``
-    naming the file."""
+    (:func:`glossrig.core.reproduction.model.load_bases`); ``etn``: its ETN
+    (:func:`glossrig.core.reproduction.model.load_etn`), which the caller has already read
+    and checked. Malformed bases raise ``InputError`` naming the file."""
     b1, b2 = _thesis_bases()
     where = ("thesis bases (scenes/materials/base_1.toml = sample 0/6, base_2.toml = the fitted second base of "
              "thesis 6.2; both thesis Table 9.1)")
     if model is not None:
-        try:
-            doc = json.loads(Path(model).read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-            raise InputError(f"cannot read the reproduction model: {e}", path=model) from None
-        has = [isinstance(doc.get(k), dict) and isinstance(doc[k].get("ward"), dict) for k in ("base1", "base2")]
-        if any(has):
-            if not all(has):
-                raise InputError("reproduction model has only one of base1.ward / base2.ward", path=model)
-            try:
-                b1, b2 = (check_physical(WardParams(**{k: float(v) for k, v in doc[name]["ward"].items()}),
-                                         where=model, what=f"{name}.ward")
-                          for name in ("base1", "base2"))
-            except (TypeError, ValueError) as e:
-                raise InputError(f"malformed base Ward parameters: {e}", path=model) from None
+        bases = load_bases(model)
+        if bases is not None:
+            b1, b2 = bases
             where = f"bases of {Path(model).name}"
-    short = "thesis bases" if where.startswith("thesis") else f"bases of {Path(model).name}"
+    short = "thesis bases" if model is None or where.startswith("thesis") else f"bases of {Path(model).name}"
     if etn is not None:
+        assert model is not None, "etn is the model's ETN: pass the model too"
         nominal, effective = _inverse_table(etn)
         return GlossModel(b1, b2, nominal, effective, f"{where}; effective = inverse of the model's ETN (eq. 6.7)",
                           f"{short}, ETN of {Path(model).name}")
@@ -253,7 +245,7 @@ def render_print(effective: np.ndarray, size_mm: tuple[float, float], model: Glo
     """Radiance (W sr^-1 m^-2 per W sr^-1 of the light, with lengths in mm) leaving the
     print towards the camera, on a ``shape`` (rows, cols) grid over the sheet
     (module docstring). ``effective``: effective coverage per halftone cell."""
-    ce = np.asarray(effective, dtype=np.float64)
+    ce: np.ndarray = np.asarray(effective, dtype=np.float64)
     if shape is None:
         shape = ce.shape
     rows, cols = shape
@@ -323,7 +315,7 @@ def preview_render(target: np.ndarray, bitmap: np.ndarray, screen: ScreenParams,
     ce = model.effective_coverage(cn)
     radiance = render_print(ce, size_mm, model, screen, lighting, (rows, cols))
     t = np.asarray(target, dtype=np.float64)
-    t8 = np.clip(np.rint(t * 255), 0, 255).astype(np.uint8)
+    t8: np.ndarray = np.clip(np.rint(t * 255), 0, 255).astype(np.uint8)
     t8 = cv2.resize(t8, (cols, rows), interpolation=cv2.INTER_AREA if t.size > rows * cols else cv2.INTER_NEAREST)
     left = cv2.cvtColor(t8, cv2.COLOR_GRAY2RGB)
     right = cv2.cvtColor(tone_map(radiance), cv2.COLOR_GRAY2RGB)
@@ -366,7 +358,7 @@ def detail_loss(image: np.ndarray, grid: tuple[int, int], screen: ScreenParams, 
     """How much of ``image``'s contrast the halftone grid ``grid`` (rows, cols of cells)
     can carry (module docstring). Returns the numbers and, when the loss exceeds
     ``limit``, the width that would keep all but ``limit``."""
-    img = np.asarray(image, dtype=np.float64)
+    img: np.ndarray = np.asarray(image, dtype=np.float64)
     h, w = img.shape
     scale = min(1.0, DETAIL_MAX_PX / max(h, w))
     if scale < 1.0:

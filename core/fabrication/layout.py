@@ -140,8 +140,8 @@ def make_layout(rows: int, cols: int, machine: Machine) -> Layout:
     res = machine.resolution_mm
     ox, oy = (float(v) for v in machine.quantise(machine.print_origin_mm))
     # x of discrete line 0 once the bbox corner sits at the origin; nudge by < 1 step onto the grid
-    x0, _ = base.image_to_machine(0.0, base.centreline_y(0, 0.0))
-    x0 = float(x0) - xmin + ox
+    x_line0, _ = base.image_to_machine(0.0, base.centreline_y(0, 0.0))
+    x0 = float(x_line0) - xmin + ox
     nudge = (math.ceil(x0 / res - 1e-9) * res - x0) % res
     return Layout(screen.a, screen.b, rows, cols, base.cell_mm, base.theta_rad,
                   (ox - xmin + nudge, oy - ymin))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -123,7 +124,7 @@ def load_machine(path: str | Path | None = None) -> Machine:
     if min(bed) <= 0:
         raise InputError(f"[machine] bed_mm must be positive, got {list(bed)}", path=path)
     res = _num(m, "resolution_mm", "machine", path)
-    vmax = tuple(_num(m, f"max_speed_{ax}_mm_s", "machine", path) for ax in "xyz")
+    vmax = cast("tuple[float, float, float]", tuple(_num(m, f"max_speed_{ax}_mm_s", "machine", path) for ax in "xyz"))
     units = _int(m, "rml_units_per_mm", "machine", path, 1)
 
     depth = _num(t, "cut_depth_mm", "tool", path)

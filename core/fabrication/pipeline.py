@@ -19,17 +19,15 @@ import io
 import json
 import logging
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
+from glossrig.core.atomic import atomic_write_bytes
 from glossrig.core.errors import InputError
 from glossrig.core.fabrication.appearance import detail_loss, detail_warning, load_gloss_model, preview_render
-from glossrig.core.fabrication.etn import load_etn
 from glossrig.core.fabrication.gcode import write_gcode
 from glossrig.core.fabrication.halftone import coverage_levels, grid_shape, halftone
 from glossrig.core.fabrication.inputs import load_coverage_image, resample
@@ -39,9 +37,12 @@ from glossrig.core.fabrication.preview import png_preview, svg_preview
 from glossrig.core.fabrication.rml import write_rml
 from glossrig.core.fabrication.toolpath import Toolpath, best_order, check_print_fits, check_toolpath, cuts_from_segments, estimate, naive_order
 from glossrig.core.fabrication.vectorize import Segments, extract_segments
+from glossrig.core.reproduction.model import load_etn
+from glossrig.core.toml_input import read_json
 
 LANGUAGES = {"gcode": "toolpath.gcode", "rml": "toolpath.rml"}
 MAX_CELLS = 60_000_000
+SUMMARY_KIND = "glossrig.fabrication_summary"
 
 _log = logging.getLogger(__name__)
 
@@ -97,7 +98,7 @@ def plan(image: str | Path, width_mm: float, *, model: str | Path | None = None,
     grid = resample(grey, (rows, cols))
     clipped = 0
     if etn is not None:
-        nominal = etn(grid)
+        nominal = etn.raw(grid)                                # clipped below, and counted
         if not np.all(np.isfinite(nominal)):
             raise InputError("ETN gives non-finite nominal coverages for this image", path=model)
         clipped = int(np.count_nonzero((nominal < 0) | (nominal > 1)))
@@ -122,7 +123,7 @@ def plan(image: str | Path, width_mm: float, *, model: str | Path | None = None,
     ys = np.concatenate([path.y_start, path.y_end, [path.home[1]]])
     W, H = m.bed_mm
     summary = {
-        "kind": "glossrig.fabrication_summary",
+        "kind": SUMMARY_KIND,
         "input": str(image), "model": None if model is None else str(model),
         "etn": None if etn is None else {"gamma": list(etn.gamma), "form": etn.form,
                                          "clipped_pixels": clipped},
@@ -169,6 +170,7 @@ def plan(image: str | Path, width_mm: float, *, model: str | Path | None = None,
         p.files["preview.png"] = _png(png_preview(coverage, layout, path, m))
         label = ("target (grey = effective coverage)" if etn is not None
                  else "target (grey = coverage, white = scratched)")
+        assert gloss is not None            # loaded above when previews is set
         render, summary["preview_render"] = preview_render(grey, bitmap, m.screen, layout.size_mm, gloss,
                                                            target_label=label)
         p.files["preview_render.png"] = _png(render)
@@ -178,12 +180,25 @@ def plan(image: str | Path, width_mm: float, *, model: str | Path | None = None,
     return p
 
 
+def read_summary(path: str | Path) -> dict:
+    """The ``summary.json`` of a fabrication run (:func:`plan`, :func:`write`; ``path``: the
+    file or the output folder): the one reader of the file. Errors name the file."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "summary.json"
+    d = read_json(path, "fabrication summary")
+    if not isinstance(d, dict) or d.get("kind") != SUMMARY_KIND:
+        got = d.get("kind") if isinstance(d, dict) else type(d).__name__
+        raise InputError(f"not a fabrication summary (kind {got!r}, expected {SUMMARY_KIND!r})", path=path)
+    return d
+
+
 def write(p: Plan, out_dir: str | Path, *, overwrite: bool = False) -> list[Path]:
     """Write a plan's files into ``out_dir`` (created if needed).
 
     Refuses, before writing anything, when any of the files exists and ``overwrite`` is
     false (design.md: nothing already written is lost or overwritten). Each file is
-    written to a temporary name and renamed into place.
+    written atomically (:func:`glossrig.core.atomic.atomic_write_bytes`).
     """
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -194,12 +209,7 @@ def write(p: Plan, out_dir: str | Path, *, overwrite: bool = False) -> list[Path
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for name, data in p.files.items():
-        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", dir=out)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, out / name)
-        written.append(out / name)
+        written.append(atomic_write_bytes(out / name, data))
     return written
 
 

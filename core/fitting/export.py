@@ -17,12 +17,16 @@ Knows nothing of Mitsuba itself (core imports neither twin nor Mitsuba).
 """
 from __future__ import annotations
 
-import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from glossrig.core.errors import InputError
 from glossrig.core.models.ward import WardParams
+
+if TYPE_CHECKING:
+    from glossrig.core.fitting.fit import MaterialFit
 
 PLUGIN = "glossrig_ward"
 
@@ -53,7 +57,7 @@ def write_fit_json(material_fit, path: str | Path, provenance: dict | None = Non
     ``provenance`` (:func:`glossrig.core.provenance.provenance`; for ``glossrig fit``
     it holds the samples table's own provenance, the chain back to the raw captures)
     becomes the top-level ``"provenance"`` object."""
-    from glossrig.core.capture import atomic_write_bytes
+    from glossrig.core.atomic import atomic_write_json
 
     path = Path(path)
     if not path.parent.is_dir():
@@ -61,28 +65,50 @@ def write_fit_json(material_fit, path: str | Path, provenance: dict | None = Non
     doc = material_fit.to_json()
     if provenance is not None:
         doc["provenance"] = provenance
-    text = json.dumps(doc, indent=2, allow_nan=False)
-    atomic_write_bytes(path, (text + "\n").encode())
-    return path
+    return atomic_write_json(path, doc, indent=2, allow_nan=False)
 
 
 def write_mitsuba_material(material_fit, path: str | Path) -> Path:
     """Write the Mitsuba material dict alone as JSON."""
-    from glossrig.core.capture import atomic_write_bytes
+    from glossrig.core.atomic import atomic_write_json
 
     path = Path(path)
     if not path.parent.is_dir():
         raise InputError("output folder does not exist", path=path)
-    atomic_write_bytes(path, (json.dumps(mitsuba_material(material_fit), indent=2) + "\n").encode())
-    return path
+    return atomic_write_json(path, mitsuba_material(material_fit), indent=2)
 
 
 FIT_FORMAT = "glossrig-fit/1"
 
 
-def read_fit_json(path: str | Path):
+@dataclass(frozen=True)
+class FitFile:
+    """A ``fit.json`` as :func:`read_fit_file` reads it: the fit, and what the writer adds
+    to the fit's own fields."""
+
+    fit: MaterialFit
+    provenance: dict | None         # the top-level "provenance" object (write_fit_json)
+    gloss: dict | None              # the luminance fit's gloss units as written ("luminance"."gloss")
+    path: Path
+
+
+def read_fit_file(path: str | Path) -> FitFile:
+    """Read a ``fit.json`` (:func:`write_fit_json`): the one reader of the format. The fit
+    is :func:`fit_from_doc`'s (see :func:`read_fit_json`); errors name the file."""
+    from glossrig.core.toml_input import read_json
+
+    path = Path(path)
+    doc = read_json(path, "fit file")
+    fit = fit_from_doc(doc, path)
+    lum = doc.get("luminance")
+    gloss = lum.get("gloss") if isinstance(lum, dict) else None
+    prov = doc.get("provenance")
+    return FitFile(fit, prov if isinstance(prov, dict) else None, gloss if isinstance(gloss, dict) else None, path)
+
+
+def read_fit_json(path: str | Path) -> MaterialFit:
     """Read a ``fit.json`` (:func:`write_fit_json`) back into a
-    :class:`~glossrig.core.fitting.fit.MaterialFit`: the one reader of the format.
+    :class:`~glossrig.core.fitting.fit.MaterialFit` (:func:`read_fit_file`).
 
     Every channel the file holds (``luminance``, ``r``, ``g``, ``b``) becomes a
     :class:`~glossrig.core.fitting.fit.WardFit` with its parameters, standard errors (``null``
@@ -92,10 +118,7 @@ def read_fit_json(path: str | Path):
     after the fit (``provenance``, and any other top-level or per-channel extras, which
     are ignored here; read the file's ``provenance`` with :func:`read_fit_provenance`).
     Errors name the file."""
-    from glossrig.core.toml_input import read_json
-
-    path = Path(path)
-    return fit_from_doc(read_json(path, "fit file"), path)
+    return read_fit_file(path).fit
 
 
 def fit_from_doc(doc, path: str | Path | None = None):
@@ -104,6 +127,7 @@ def fit_from_doc(doc, path: str | Path | None = None):
     import numpy as np
 
     from glossrig.core.fitting.fit import CHANNELS, PARAM_NAMES, MaterialFit, WardFit
+    from glossrig.core.fitting.uncertainty import read_uncertainty
 
     path = Path(path) if path is not None else None
     if not isinstance(doc, dict) or doc.get("format") != FIT_FORMAT:
@@ -135,7 +159,8 @@ def fit_from_doc(doc, path: str | Path | None = None):
                                n_samples=int(d["n_samples"]), weighting=str(d["weighting"]), clip=d["clip"],
                                clip_model=bool(d["clip_model"]), cost=float(d["cost"]),
                                converged=bool(d["converged"]), n_starts=int(d["n_starts"]),
-                               time_s=float(d["time_s"]))
+                               time_s=float(d["time_s"]), footprint=d.get("footprint"),
+                               uncertainty=read_uncertainty(d.get("uncertainty")))
         if not fits:
             raise ValueError(f"no fitted channel (expected one of {', '.join(CHANNELS)})")
         shared = dict(doc["shared_lobe_rgb"])
@@ -155,6 +180,4 @@ def fit_from_doc(doc, path: str | Path | None = None):
 
 def read_fit_provenance(path: str | Path) -> dict | None:
     """The ``"provenance"`` object of a ``fit.json`` (None when the file has none)."""
-    path = Path(path)
-    read_fit_json(path)                       # the checks and errors of the one reader
-    return json.loads(path.read_text()).get("provenance")
+    return read_fit_file(path).provenance

@@ -54,7 +54,15 @@ Departures from the thesis, and why:
   exclude the calibration (geometry, lamp positions, reference) and model
   error, which dominate a real measurement, so they are **not** the
   measurement's uncertainty. Every channel of fit.json says so in
-  ``stderr_kind`` (:data:`STDERR_KIND`) until an uncertainty budget exists.
+  ``stderr_kind`` (:data:`STDERR_KIND`); the measurement's uncertainty is the
+  channel's ``uncertainty``, a GUM budget of noise, model misfit, footprint and
+  calibration (:mod:`glossrig.core.fitting.uncertainty`).
+* **Footprint.** Each sample of ``glossrig extract`` is the BRDF averaged over
+  its Bayer block's read kernel and pixel areas; where the table allows
+  (:func:`fit_samples`), the model fitted is eq. 4.79 averaged the same way
+  (:mod:`glossrig.core.fitting.footprint_model`), which removes the bias of
+  fitting the point model to such values (validation/recovery.md: +1 % on
+  alpha_y at scale 0.25, far more for lobes about as narrow as a footprint).
 * **Clipping (eq. 6.5).** The thesis clips the measured values at 1.0 and fits
   the unclipped model to them, which pulls the lobe down and wide wherever the
   model exceeds 1. With ``clip`` set, the model is clipped too (a censored fit):
@@ -71,6 +79,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from collections.abc import Callable, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -78,6 +87,7 @@ from glossrig.core.errors import InputError
 from glossrig.core.samples import LUMINANCE_WEIGHTS, luminance
 from glossrig.core.models.ward import (ALPHA_MAX, WardGeometry, WardParams, ward_geometry, ward_param_jacobian, ward_parts,
                    ward_unit_lobes)
+from glossrig.core.fitting.footprint_model import SampleFootprint, footprint_eval
 
 PARAM_NAMES = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
 ALPHA_MIN = 1e-4
@@ -214,9 +224,10 @@ class _Data:
     geo: WardGeometry
     W: np.ndarray       # residual multiplier sqrt(v) * w (eq. 4.81-4.82)
     y: np.ndarray       # measured values (clipped if clipping)
+    fp: SampleFootprint | None = None   # set: the model is the footprint average (footprint_model)
 
     def take(self, idx) -> _Data:
-        return _Data(self.geo.take(idx), self.W[idx], self.y[idx])
+        return _Data(self.geo.take(idx), self.W[idx], self.y[idx], None if self.fp is None else self.fp.take(idx))
 
     def __len__(self):
         return self.y.size
@@ -237,7 +248,10 @@ def _model(x: np.ndarray, d: _Data, jac: bool = False):
     """Eq. 4.79 at ``x = (rho_d, rho_s, ln alpha_x, ln alpha_y, rot)`` and, with
     ``jac``, its Fortran-ordered (n, 5) Jacobian (columns in the order of ``x``):
     the project's one evaluation, :func:`glossrig.core.models.ward.ward_parts` and
-    :func:`glossrig.core.models.ward.ward_param_jacobian` with ``log_alpha``."""
+    :func:`glossrig.core.models.ward.ward_param_jacobian` with ``log_alpha``; averaged
+    over each sample's footprint where ``d.fp`` is set (:mod:`glossrig.core.fitting.footprint_model`)."""
+    if d.fp is not None:
+        return footprint_eval(d.geo, d.fp, x, jac=jac, log_alpha=True)
     f, parts = ward_parts(d.geo, x, log_alpha=True)
     if not jac:
         return f
@@ -250,15 +264,24 @@ def _residual_fn(d: _Data, clip, clip_model):
     residuals it has just accepted, so the pieces of that evaluation are kept
     and the exponential is not computed twice."""
     censor = clip is not None and clip_model
-    last = {}
+    last: dict[str, Any] = {}
 
     def fun(x):
-        f, parts = ward_parts(d.geo, x, log_alpha=True)
-        last.update(x=np.array(x, float), f=f, parts=parts)
+        if d.fp is not None:            # footprint average: its Jacobian is evaluated anew in jac
+            f = footprint_eval(d.geo, d.fp, x, log_alpha=True)
+        else:
+            f, parts = ward_parts(d.geo, x, log_alpha=True)
+            last.update(x=np.array(x, float), f=f, parts=parts)
         fc = np.minimum(f, clip) if censor else f
         return d.W * (fc - d.y)
 
     def jac(x):
+        if d.fp is not None:
+            f, J = footprint_eval(d.geo, d.fp, x, jac=True, log_alpha=True)
+            J *= d.W[:, None]
+            if censor:
+                J[f >= clip] = 0.0
+            return J
         if "x" in last and np.array_equal(last["x"], x):
             f, parts = last["f"], last["parts"]
         else:
@@ -402,9 +425,12 @@ def parameter_errors(fit, truth) -> dict[str, float]:
     return out
 
 
-def _sandwich(J: np.ndarray, r: np.ndarray, rel_tol: float = 1e-10) -> np.ndarray:
+def _sandwich(J: np.ndarray, r: np.ndarray, rel_tol: float = 1e-10, groups=None) -> np.ndarray:
     """HC1 sandwich covariance of least-squares parameters; inf along directions
-    the data do not determine (eigenvalues of the scaled J'J below ``rel_tol``)."""
+    the data do not determine (eigenvalues of the scaled J'J below ``rel_tol``).
+    With ``groups`` (one integer label per row, 0..G-1): the cluster-robust "CR1"
+    sandwich, whose meat sums the score ``J' r`` within each group first
+    (Liang & Zeger 1986; factor ``G/(G-1) (n-1)/(n-p)``)."""
     n, p = J.shape
     norms = np.sqrt(np.einsum("ij,ij->j", J, J))
     scale = np.where(norms > 0, norms, 1.0)
@@ -414,8 +440,14 @@ def _sandwich(J: np.ndarray, r: np.ndarray, rel_tol: float = 1e-10) -> np.ndarra
     good = lam > rel_tol * max(lam.max(), 1e-300)
     Ainv = (V[:, good] / lam[good]) @ V[:, good].T
     Jr = Js * r[:, None]
-    meat = Jr.T @ Jr
-    cov = Ainv @ meat @ Ainv * (n / max(n - p, 1))
+    if groups is None:
+        meat = Jr.T @ Jr
+        cov = Ainv @ meat @ Ainv * (n / max(n - p, 1))
+    else:
+        G = int(np.max(groups)) + 1
+        S = np.stack([np.bincount(groups, weights=Jr[:, j], minlength=G) for j in range(p)], axis=1)
+        meat = S.T @ S
+        cov = Ainv @ meat @ Ainv * (G / max(G - 1, 1) * (n - 1) / max(n - p, 1))
     cov = cov / np.outer(scale, scale)
     undetermined = np.zeros(p, bool)
     for i in np.flatnonzero(~good):
@@ -451,6 +483,8 @@ class WardFit:
     n_starts: int
     time_s: float
     history: list[dict] = field(default_factory=list, repr=False)
+    footprint: dict | None = None       # how the model treats the samples' footprint (footprint_model)
+    uncertainty: dict | None = None     # the GUM budget (glossrig.core.fitting.uncertainty), plain JSON
 
     def to_json(self) -> dict:
         """Plain-JSON dict: the parameters, ``<name>_stderr`` for each (``null``
@@ -460,7 +494,7 @@ class WardFit:
             v = float(v)
             return v if math.isfinite(v) else None
 
-        d = {k: float(getattr(self.params, k)) for k in PARAM_NAMES}
+        d: dict[str, Any] = {k: float(getattr(self.params, k)) for k in PARAM_NAMES}
         for k in PARAM_NAMES:
             d[f"{k}_stderr"] = num(self.stderr[k])
         d["stderr_kind"] = STDERR_KIND          # the stderr and covariance are not the measurement's uncertainty
@@ -470,6 +504,10 @@ class WardFit:
         d.update(at_bound=list(self.at_bound), n_samples=int(self.n_samples), weighting=self.weighting,
                  clip=self.clip, clip_model=self.clip_model, cost=float(self.cost), converged=bool(self.converged),
                  n_starts=int(self.n_starts), time_s=round(float(self.time_s), 4))
+        if self.footprint is not None:
+            d["footprint"] = self.footprint
+        if self.uncertainty is not None:
+            d["uncertainty"] = self.uncertainty
         return d
 
 
@@ -515,7 +553,9 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
              sample_weight=None, clip: float | None = None, clip_model: bool = True,
              starts: Iterable[WardParams] | None = None, grid: bool = True, n_starts: int = 4,
              refine_samples: int = 50_000, grid_samples: int = 10_000, seed: int = 0,
-             ftol: float = 1e-9, max_nfev: int = 60, log: Callable[[str], None] | None = None) -> WardFit:
+             ftol: float = 1e-9, max_nfev: int = 60, log: Callable[[str], None] | None = None,
+             footprint: SampleFootprint | None = None, footprint_fit: bool = True, groups=None,
+             budget: bool = True, calibration: dict | None = None, led_aperture: float | None = None) -> WardFit:
     """Fit the extended Ward model (eq. 4.79-4.80) to one channel by the weighted
     least squares of eq. 4.81-4.82, within the bounds of Table 4.2.
 
@@ -530,6 +570,17 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
     The starts are refined on at most ``refine_samples`` rows (the largest
     values plus a random subset); the best is then polished on all rows.
     Deterministic for a given ``seed``.
+
+    ``footprint``: the samples' footprints (:mod:`glossrig.core.fitting.footprint_model`,
+    one row per sample); with ``footprint_fit`` the model fitted is eq. 4.79 averaged
+    over each footprint (the pixel-area quadrature chosen for the start's lobe and
+    refined for the optimum's), else the point model, and the footprint's effect
+    goes into the budget. ``budget``: compute the uncertainty budget
+    (:mod:`glossrig.core.fitting.uncertainty`) with ``groups`` (one label per sample:
+    the LED x rotation blocks of the model component; None: omitted),
+    ``calibration`` (``{param: u}`` of this channel; None: omitted) and
+    ``led_aperture`` (the LED's angular diameter in radians; None: the rig's,
+    :data:`glossrig.core.fitting.uncertainty.DEFAULT_LED_APERTURE`; 0: a point LED).
     """
     t0 = time.perf_counter()
     say = log or (lambda msg: None)
@@ -544,6 +595,8 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
         raise InputError(f"{channel}: values hold NaN or infinite entries")
     if clip is not None and not (math.isfinite(clip) and clip > 0):
         raise InputError(f"clip level must be a positive number, got {clip!r}")
+    td: np.ndarray | None
+    pd_: np.ndarray | None
     if weighting == "literal":
         try:
             td, pd_ = np.asarray(samples["theta_d"], float), np.asarray(samples["phi_d"], float)
@@ -557,9 +610,17 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
         raise InputError(f"{channel}: sample weights must be {n_all} finite values >= 0")
     W = np.sqrt(v) * w
     use = W > 0
+    if footprint is not None and len(footprint) != n_all:
+        raise InputError(f"{channel}: {len(footprint)} footprints for {n_all} samples")
+    if groups is not None:
+        groups = np.asarray(groups).ravel()
+        if groups.size != n_all:
+            raise InputError(f"{channel}: {groups.size} block labels for {n_all} samples")
     if not use.all():
         a = {k: x[use] for k, x in a.items()}
         y, W = y[use], W[use]
+        footprint = None if footprint is None else footprint.take(use)
+        groups = None if groups is None else groups[use]
     n = y.size
     if n < 5:
         raise InputError(f"{channel}: {n} samples with a non-zero weight; the Ward model has 5 parameters")
@@ -592,10 +653,12 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
         return least_squares(fun, x0, jac=jac, bounds=(lb, ub), method="trf", x_scale="jac", ftol=ftol,
                              xtol=ftol, gtol=ftol, max_nfev=max_nfev, callback=_Stall(n_rows))
 
-    sub = d if n <= refine_samples else d.take(_subset(d, refine_samples, rng, None))
+    idx_sub = None if n <= refine_samples else _subset(d, refine_samples, rng, None)
+    sub = d if idx_sub is None else d.take(idx_sub)
     fun, jac = _residual_fn(sub, clip, clip_model)
     history = []
     best = None
+    results = []
     for k, x0 in enumerate(cand):
         t1 = time.perf_counter()
         r = solve(fun, jac, prepare(x0), len(sub))
@@ -603,8 +666,39 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
                         "cost": float(r.cost), "nfev": int(r.nfev), "status": int(r.status), "rows": len(sub),
                         "time_s": time.perf_counter() - t1})
         say(f"{channel}: start {k + 1}/{len(cand)} cost {r.cost:.6g} ({r.nfev} evaluations)")
+        results.append(r)
         if best is None or r.cost < best.cost:
             best = r
+    assert best is not None             # cand is not empty (checked above)
+    if footprint is not None and footprint_fit:
+        # The footprint-averaged model, from the two best distinct point-model optima (on the
+        # same subset), each with the pixel quadrature its lobe needs; then polished below.
+        chosen: list = []
+        for r0 in sorted(results, key=lambda r: r.cost):
+            if all(np.max(np.abs(r0.x[2:4] - c.x[2:4])) > 0.05 or abs((r0.x[4] - c.x[4] + np.pi / 2) % np.pi
+                                                                      - np.pi / 2) > 0.05 for c in chosen):
+                chosen.append(r0)
+            if len(chosen) == 2:
+                break
+        fp_best = None
+        for r0 in chosen:
+            orders = footprint.orders_for(d.geo, r0.x, log_alpha=True)
+            fp_o = footprint.with_orders(orders)
+            sub = _Data(d.geo, d.W, d.y, fp_o) if idx_sub is None else _Data(sub.geo, sub.W, sub.y, fp_o.take(idx_sub))
+            fun, jac = _residual_fn(sub, clip, clip_model)
+            t1 = time.perf_counter()
+            r = solve(fun, jac, prepare(r0.x), len(sub))
+            history.append({"stage": "footprint start", "orders": list(orders), "start": [float(v) for v in r0.x],
+                            "x": [float(v) for v in r.x], "cost": float(r.cost), "nfev": int(r.nfev),
+                            "status": int(r.status), "rows": len(sub), "time_s": time.perf_counter() - t1})
+            say(f"{channel}: footprint model from a point optimum, cost {r.cost:.6g} ({r.nfev} evaluations)")
+            if fp_best is None or r.cost < fp_best[0].cost:
+                fp_best = (r, fp_o, fun, jac, sub)
+        assert fp_best is not None
+        best, fp_o, fun, jac, sub = fp_best
+        d = _Data(d.geo, d.W, d.y, fp_o)
+        if idx_sub is None:
+            sub = d
     if sub is not d:
         fun, jac = _residual_fn(d, clip, clip_model)
         x0 = best.x
@@ -618,6 +712,23 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
                         "x": [float(v) for v in best.x], "cost": float(best.cost), "nfev": int(best.nfev),
                         "status": int(best.status), "rows": n, "time_s": time.perf_counter() - t1})
         say(f"{channel}: polished on all {n} samples, cost {best.cost:.6g} ({best.nfev} evaluations)")
+    for _ in range(2):      # a lobe narrower than the start's: finer pixel quadrature, polish again
+        if d.fp is None:
+            break
+        need = d.fp.orders_for(d.geo, best.x, log_alpha=True)
+        if all(a_ <= b_ for a_, b_ in zip(need, d.fp.orders)):
+            break
+        d = _Data(d.geo, d.W, d.y, d.fp.with_orders(tuple(max(a_, b_) for a_, b_ in zip(need, d.fp.orders))))
+        fun, jac = _residual_fn(d, clip, clip_model)
+        x0, t1 = best.x, time.perf_counter()
+        best = _polish_lm(fun, jac, x0, lb, ub, n, max_nfev)
+        if best.status <= 0 or _near_bound(best.x, lb, ub):
+            best = solve(fun, jac, best.x, n)
+        assert d.fp is not None
+        history.append({"stage": "footprint quadrature", "orders": list(d.fp.orders), "start": [float(v) for v in x0],
+                        "x": [float(v) for v in best.x], "cost": float(best.cost), "nfev": int(best.nfev),
+                        "status": int(best.status), "rows": n, "time_s": time.perf_counter() - t1})
+        say(f"{channel}: pixel quadrature {d.fp.orders} for the narrower lobe, cost {best.cost:.6g}")
     x = best.x
 
     # Uncertainty (sandwich) in the solver's parameters -> reported parameters.
@@ -641,10 +752,21 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
     f = _model(x, d)
     stats = _residual_stats(d.y, f, d.W, clip, clip_model)
     stats["n_dropped_zero_weight"] = int(n_all - n)
+    unc = None
+    if budget:
+        from glossrig.core.fitting.uncertainty import fit_budget
+
+        t1 = time.perf_counter()
+        unc = fit_budget(params, x, raw.alpha_x < raw.alpha_y, J, r, cov, geo=d.geo, W=d.W, rows=a, groups=groups,
+                         footprint=footprint, footprint_fitted=d.fp is not None, led_aperture=led_aperture,
+                         calibration=calibration)
+        unc["budget"]["time_s"] = round(time.perf_counter() - t1, 4)
+    fp_info = d.fp.describe() if d.fp is not None else {"model": "point", "rows": n, "rows_with_jacobian":
+                                                        0 if footprint is None else footprint.n_with_jacobian}
     return WardFit(channel=channel, params=params, stderr=stderr, covariance=cov, residuals=stats,
                    at_bound=at_bound, n_samples=n, weighting=weighting, clip=clip, clip_model=clip_model,
                    cost=float(best.cost), converged=bool(best.status > 0 or best.status == -2), n_starts=len(cand),
-                   time_s=time.perf_counter() - t0, history=history)
+                   time_s=time.perf_counter() - t0, history=history, footprint=fp_info, uncertainty=unc)
 
 
 def _near_bound(x, lb, ub, tol=1e-6):
@@ -781,10 +903,10 @@ class MaterialFit:
     def to_json(self) -> dict:
         from glossrig.core.fitting.export import mitsuba_material
 
-        out = {"format": "glossrig-fit/1", "model": "extended Ward (thesis eq. 4.79-4.80)",
-               "canonical_form": CANONICAL_FORM, "angles": "radians",
-               "luminance_definition": "Y = 0.2126 r + 0.7152 g + 0.0722 b (Rec. 709 / sRGB, linear)",
-               "source": self.source, "options": self.options}
+        out: dict[str, Any] = {"format": "glossrig-fit/1", "model": "extended Ward (thesis eq. 4.79-4.80)",
+                               "canonical_form": CANONICAL_FORM, "angles": "radians",
+                               "luminance_definition": "Y = 0.2126 r + 0.7152 g + 0.0722 b (Rec. 709 / sRGB, linear)",
+                               "source": self.source, "options": self.options}
         for k, f in self.fits.items():
             out[k] = f.to_json()
         if "luminance" in self.fits:
@@ -798,7 +920,9 @@ class MaterialFit:
 
 
 def channel_values(df, channel: str) -> np.ndarray:
-    """BRDF values of ``channel`` (``r``, ``g``, ``b`` or ``luminance``, Rec. 709 Y)."""
+    """BRDF values of ``channel`` (``r``, ``g``, ``b`` or ``luminance``, Rec. 709 Y);
+    NaN where the channel (for luminance: one of r, g, b) is missing
+    (:mod:`glossrig.core.samples`; :func:`fit_samples` fills luminance's gaps)."""
     if channel == "luminance":
         return luminance(df["r"], df["g"], df["b"])
     if channel in ("r", "g", "b"):
@@ -807,23 +931,35 @@ def channel_values(df, channel: str) -> np.ndarray:
 
 
 def shared_lobe_albedos(df, lobe: WardParams, *, weighting: str = "mirror", clip: float | None = None,
-                        sample_weight=None) -> dict:
+                        sample_weight=None, footprint: SampleFootprint | None = None) -> dict:
     """Per-channel non-negative ``rho_d, rho_s`` for a fixed lobe (eq. 4.81 is
-    linear in them). Rows the clip level censors are left out."""
+    linear in them). Rows the clip level censors are left out, and so are the rows a
+    channel is missing in (NaN, :mod:`glossrig.core.samples`) from that channel's.
+    ``sample_weight``: one weight per row, or ``{channel: weights}``. With ``footprint``
+    (one per row) the lobe is averaged over each channel's footprint, as fitted."""
     a = _arrays(df)
     td = np.asarray(df["theta_d"], float) if weighting == "literal" else None
     pdd = np.asarray(df["phi_d"], float) if weighting == "literal" else None
-    W = peak_weight(a["theta_in"], a["phi_in"], a["theta_out"], a["phi_out"], td, pdd, mode=weighting)
-    if sample_weight is not None:
-        W = W * np.sqrt(np.asarray(sample_weight, float))
+    W0 = peak_weight(a["theta_in"], a["phi_in"], a["theta_out"], a["phi_out"], td, pdd, mode=weighting)
+    W = W0
+    if sample_weight is not None and not isinstance(sample_weight, dict):
+        W = W0 * np.sqrt(np.asarray(sample_weight, float))
     unit = WardParams(rho_d=0.0, rho_s=1.0, alpha_x=lobe.alpha_x, alpha_y=lobe.alpha_y,
                       lobe_rotation=lobe.lobe_rotation)
     d = _make_data(a["theta_in"], a["theta_out"], a["theta_h"], a["phi_h"], np.zeros(W.size), W, None)
     B = _model(_internal(unit), d)
-    out = {"rho_d": [], "rho_s": []}
+    out: dict[str, list[float]] = {"rho_d": [], "rho_s": []}
     for c in ("r", "g", "b"):
+        if footprint is not None:
+            fp_c = footprint.for_channel(c)
+            fp_c = fp_c.with_orders(fp_c.orders_for(d.geo, _internal(unit), log_alpha=True))
+            B = _model(_internal(unit), _Data(d.geo, d.W, d.y, fp_c))
         y = np.asarray(df[c], float)
-        Wc = W if clip is None else W * (y < clip)
+        Wc = W0 * np.sqrt(np.asarray(sample_weight[c], float)) if isinstance(sample_weight, dict) else W
+        Wc = np.where(np.isfinite(y) & np.isfinite(Wc), Wc, 0.0)
+        y = np.where(Wc > 0, y, 0.0)
+        if clip is not None:
+            Wc = Wc * (y < clip)
         W2 = Wc * Wc
         A, Bs, _ = _nnls2(np.sum(W2) / np.pi ** 2, np.sum(W2 * B) / np.pi, np.sum(W2 * B * B),
                           np.sum(W2 * y) / np.pi, np.sum(W2 * y * B), np.sum(W2 * y * y))
@@ -834,34 +970,137 @@ def shared_lobe_albedos(df, lobe: WardParams, *, weighting: str = "mirror", clip
 
 def fit_samples(df, *, channels: Iterable[str] = CHANNELS, weighting: str = "mirror",
                 clip: float | None = None, clip_model: bool = True, use_weight_column: bool = True,
-                source: str | None = None, log: Callable[[str], None] | None = None, **kw) -> MaterialFit:
+                source: str | None = None, log: Callable[[str], None] | None = None,
+                footprint: bool | None = None, cfa: str = "RGGB", budget: bool = True,
+                calibration: dict | None = None, led_aperture: float | None = None, **kw) -> MaterialFit:
     """Fit luminance and each colour channel of a samples table (see
     :mod:`glossrig.core.samples`) independently with :func:`fit_ward`; the
     luminance fit's lobe also serves as an extra start for the colour channels.
-    Keyword arguments are passed on to :func:`fit_ward`."""
+    Keyword arguments are passed on to :func:`fit_ward`.
+
+    Missing channels (NaN, :mod:`glossrig.core.samples`): a colour channel is fitted on
+    the rows that have it, with its own weights (``weight_<c>`` where the table has
+    them, :func:`glossrig.core.samples.channel_weight`, else ``weight``). Luminance
+    needs all three: a row with a missing channel contributes the luminance of its
+    measured channels and, for the missing one, that channel's own fit at the row's
+    geometry (a dark channel is predicted where it could not be measured; a saturated
+    one where it was clipped). So every row the table has enters the luminance fit,
+    and its diffuse level is not taken from the highlight alone, which is where the
+    rows with every channel are when one channel is dark (issue 14). Those channels are
+    fitted first for that; a channel with too few rows to fit is taken as 0 where it is
+    missing (it is almost always missing for being too dark: its luminance share is then
+    below its weight times the noise floor). ``options["missing_channels"]`` of the
+    result counts the rows, what each channel fit had and what luminance did.
+
+    ``footprint``: fit the footprint-averaged model (:mod:`glossrig.core.fitting.footprint_model`:
+    each sample is the BRDF averaged over its Bayer block's read kernel and pixel areas,
+    mapped by the Jacobian of its half-vector slope, which is taken from the table's
+    neighbouring blocks; ``cfa`` the Bayer pattern). None (default): on where the
+    table has what that needs (``u, v, led, rotation``, rows on the 2-px grid of Bayer
+    blocks that ``glossrig extract`` writes: u, v even), else the point model;
+    False: the point model (the footprint's effect then goes into the budget); True:
+    required. ``budget``: each channel's GUM uncertainty budget
+    (:mod:`glossrig.core.fitting.uncertainty`; the model component's blocks are the
+    table's LED x rotation), ``calibration``: ``{channel: {param: u}}`` standard
+    uncertainties from the calibration (absent: that component is omitted, and the
+    budget says so), ``led_aperture``: the LED's angular diameter for the footprint
+    component (radians; None: the rig's 0.75 mm at 300 mm; 0: a point LED)."""
+    from glossrig.core.fitting.footprint_model import FOOTPRINT_COLUMNS, sample_footprint, table_jacobian
+
+    from glossrig.core.samples import channel_weight, valid_channels
+
     channels = list(channels)
     if not channels:
         raise InputError("no channel to fit")
     sw = np.asarray(df["weight"], float) if (use_weight_column and "weight" in df) else None
+    valid = valid_channels(df)
+    complete = valid.all(axis=1)
+    Jt = table_jacobian(df) if (footprint is not False or budget) else None     # budget: the point fit's footprint
+    if footprint is True and Jt is None:
+        raise InputError(f"footprint fit: the samples table lacks one of {', '.join(FOOTPRINT_COLUMNS)}, or its "
+                         "rows are not one per 2x2 Bayer block (u, v even) as glossrig extract writes them")
+    fp_base = sample_footprint(Jt, "luminance", cfa) if Jt is not None else None
+    groups = (df.groupby(["led", "rotation"], sort=True).ngroup().to_numpy()
+              if ("led" in df and "rotation" in df) else None)
     fits: dict[str, WardFit] = {}
-    order = sorted(channels, key=lambda c: c != "luminance")
     user_starts = list(kw.pop("starts", None) or [])
-    for c in order:
-        y = channel_values(df, c)
+    missing_info: dict[str, Any] = {"rows": int(np.size(complete)), "rows_with_every_channel": int(complete.sum())}
+
+    def fit_one(c: str, **extra) -> WardFit:
         starts = list(user_starts)
         if "luminance" in fits:
             starts.append(fits["luminance"].params)
-        fits[c] = fit_ward(df, y, channel=c, weighting=weighting, sample_weight=sw, clip=clip,
-                           clip_model=clip_model, starts=starts, log=log, **kw)
+        fp_c = None if fp_base is None else fp_base.for_channel(c)
+        if c == "luminance":
+            y, rows, w = lum, lum_rows, sw
+        else:
+            k = "rgb".index(c)
+            y, rows = channel_values(df, c), valid[:, k]
+            w = channel_weight(df, c) if sw is not None else None
+            missing_info[c] = {"rows": int(rows.sum())}
+        sel = None if rows.all() else np.flatnonzero(rows)
+        if sel is not None:
+            if sel.size == 0:
+                raise InputError(f"{c}: the channel is missing in every row of the samples table (out of the "
+                                 f"capture's dynamic range; see the extraction's dynamic_range.json)")
+            y, w = y[sel], None if w is None else w[sel]
+            fp_c = None if fp_c is None else fp_c.take(sel)
+        f = fit_ward(df if sel is None else df.iloc[sel], y, channel=c, weighting=weighting, sample_weight=w,
+                     clip=clip, clip_model=clip_model, starts=starts, log=log, footprint=fp_c,
+                     footprint_fit=footprint is not False, groups=groups if groups is None or sel is None
+                     else groups[sel], budget=extra.pop("budget", budget), calibration=(calibration or {}).get(c),
+                     led_aperture=led_aperture, **{**kw, **extra})
         if log:
-            p = fits[c].params
+            p = f.params
             log(f"{c}: rho_d={p.rho_d:.4g} rho_s={p.rho_s:.4g} alpha_x={p.alpha_x:.4g} "
-                f"alpha_y={p.alpha_y:.4g} rotation={p.lobe_rotation:.4g} rad ({fits[c].time_s:.1f} s)")
+                f"alpha_y={p.alpha_y:.4g} rotation={p.lobe_rotation:.4g} rad ({f.time_s:.1f} s"
+                + ("" if sel is None else f", {sel.size} of {np.size(complete)} rows: the rest miss the channel") + ")")
+        return f
+
+    lum = channel_values(df, "luminance")
+    lum_rows = complete
+    if "luminance" in channels and not complete.all():
+        # luminance where a channel is missing: that channel's own fit predicts it (docstring)
+        helpers: dict[str, WardFit | None] = {}
+        for k, c in enumerate("rgb"):
+            if valid[:, k].all():
+                continue
+            try:
+                helpers[c] = fits[c] = fit_one(c) if c in channels else fit_one(c, budget=False)
+            except InputError as e:
+                helpers[c] = None
+                missing_info[c] = {"rows": int(valid[:, k].sum()), "fit_failed": str(e)}
+        from glossrig.core.models.ward import ward_from_angles
+
+        vals = np.stack([channel_values(df, c) for c in "rgb"], axis=1)
+        for c, f in helpers.items():
+            k = "rgb".index(c)
+            gap = ~valid[:, k]
+            vals[gap, k] = 0.0 if f is None else ward_from_angles(
+                df["theta_in"].to_numpy()[gap], df["theta_out"].to_numpy()[gap], df["theta_h"].to_numpy()[gap],
+                df["phi_h"].to_numpy()[gap], f.params)
+        lum = luminance(vals[:, 0], vals[:, 1], vals[:, 2])
+        lum_rows = valid.any(axis=1)
+        missing_info["luminance"] = {
+            "rows": int(lum_rows.sum()), "rows_with_predicted_channels": int((lum_rows & ~complete).sum()),
+            "predicted_by": {c: "0 (too few rows to fit the channel)" if f is None else
+                             "the channel's own fit (point model)" for c, f in helpers.items()}}
+        for c in list(fits):
+            if c not in channels:
+                del fits[c]
+    order = sorted((c for c in channels if c not in fits), key=lambda c: c != "luminance")
+    for c in order:
+        fits[c] = fit_one(c)
     lobe_fit = fits.get("luminance") or next(iter(fits.values()))
-    shared = shared_lobe_albedos(df, lobe_fit.params, weighting=weighting, clip=clip, sample_weight=sw)
+    shared = shared_lobe_albedos(df, lobe_fit.params, weighting=weighting, clip=clip,
+                                 sample_weight=None if sw is None else {c: channel_weight(df, c) for c in "rgb"},
+                                 footprint=fp_base if footprint is not False else None)
     shared.update(alpha_x=lobe_fit.params.alpha_x, alpha_y=lobe_fit.params.alpha_y,
                   lobe_rotation=lobe_fit.params.lobe_rotation, lobe_from=lobe_fit.channel)
-    opts = {"weighting": weighting, "clip": clip, "clip_model": clip_model, "use_weight_column": use_weight_column,
-            "luminance_weights": list(LUMINANCE_WEIGHTS)}
+    opts: dict[str, Any] = {"weighting": weighting, "clip": clip, "clip_model": clip_model, "use_weight_column": use_weight_column,
+            "luminance_weights": list(LUMINANCE_WEIGHTS), "footprint": fp_base is not None and footprint is not False,
+            "cfa": cfa, "budget": budget, "led_aperture": led_aperture}
     opts.update({k: v for k, v in kw.items() if isinstance(v, (int, float, str, bool))})
+    if not complete.all():
+        opts["missing_channels"] = missing_info
     return MaterialFit(fits={c: fits[c] for c in channels}, shared_rgb=shared, source=source, options=opts)

@@ -11,6 +11,9 @@
   ``phi_h`` (density plus binned median and quartiles): structure in them is
   what the model misses;
 * :func:`plot_measured_vs_fitted` - density of measured against fitted values;
+* :func:`plot_uncertainty_budget` - the GUM budget of every channel
+  (:mod:`glossrig.core.fitting.uncertainty`) as a table per channel, with each
+  component's share of the combined variance as bars;
 The preview sphere of the fitted material (``render_preview``) is rendered with
 Mitsuba 3 and lives in :mod:`glossrig.twin.material_renders` (same name and
 arguments): ``glossrig.core`` imports neither Mitsuba nor the twin (design.md).
@@ -58,8 +61,27 @@ def _log_ticks(axis):
     axis.set_minor_formatter(NullFormatter())
 
 
-def _fitted(df, p: WardParams, clip=None, clip_model=True):
-    f = ward_from_angles(df["theta_in"], df["theta_out"], df["theta_h"], df["phi_h"], p)
+_LAST_J: list = [None, None]
+
+
+def _fitted(df, p: WardParams, clip=None, clip_model=True, footprint: dict | None = None, channel="luminance"):
+    """The fitted model at the table's samples: the footprint average where the fit used
+    it (``footprint``: the fit's ``footprint`` record), else the point model."""
+    f = None
+    if footprint and footprint.get("model") == "footprint-averaged":
+        from glossrig.core.fitting.footprint_model import footprint_eval, sample_footprint, table_jacobian
+        from glossrig.core.models.ward import ward_geometry
+
+        if _LAST_J[0] is not df:            # one table's Jacobian serves every plot of every channel
+            _LAST_J[:] = [df, table_jacobian(df)]
+        J = _LAST_J[1]
+        if J is not None and len(J) == len(df):
+            fp = sample_footprint(J, channel, footprint.get("cfa", "RGGB"),
+                                  tuple(footprint.get("pixel_quadrature", (2, 2))))
+            geo = ward_geometry(df["theta_in"], df["theta_out"], df["theta_h"], df["phi_h"])
+            f = footprint_eval(geo, fp, [p.rho_d, p.rho_s, p.alpha_x, p.alpha_y, p.lobe_rotation])
+    if f is None:
+        f = ward_from_angles(df["theta_in"], df["theta_out"], df["theta_h"], df["phi_h"], p)
     if clip is not None and clip_model:
         f = np.minimum(f, clip)
     return f
@@ -84,7 +106,7 @@ def plot_lobe_slices(df, fit, path, *, channel: str | None = None, half_width_de
     channel = channel or fit.channel
     p = fit.params
     y = _measured(df, channel, fit.clip)
-    f = _fitted(df, p, fit.clip, fit.clip_model)
+    f = _fitted(df, p, fit.clip, fit.clip_model, fit.footprint, channel)
     an = np.mod(np.asarray(df["phi_h"], float) + p.lobe_rotation, 2 * np.pi)
     th = np.rad2deg(np.asarray(df["theta_h"], float))
     hw = np.deg2rad(half_width_deg)
@@ -123,7 +145,7 @@ def plot_rig_slices(df, fit, path, *, channel: str | None = None) -> Path:
     plt = _plt()
     channel = channel or fit.channel
     y = _measured(df, channel, fit.clip)
-    f = _fitted(df, fit.params, fit.clip, fit.clip_model)
+    f = _fitted(df, fit.params, fit.clip, fit.clip_model, fit.footprint, channel)
     u = np.asarray(df["u"])
     vals, counts = np.unique(u, return_counts=True)
     u0 = vals[np.argmax(counts)]
@@ -180,7 +202,7 @@ def plot_residuals(df, fit, path, *, channel: str | None = None) -> Path:
     plt = _plt()
     channel = channel or fit.channel
     y = _measured(df, channel, fit.clip)
-    f = _fitted(df, fit.params, fit.clip, fit.clip_model)
+    f = _fitted(df, fit.params, fit.clip, fit.clip_model, fit.footprint, channel)
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = (y - f) / f
     ok = np.isfinite(rel)
@@ -218,7 +240,7 @@ def plot_measured_vs_fitted(df, fit, path, *, channel: str | None = None) -> Pat
     plt = _plt()
     channel = channel or fit.channel
     y = _measured(df, channel, fit.clip)
-    f = _fitted(df, fit.params, fit.clip, fit.clip_model)
+    f = _fitted(df, fit.params, fit.clip, fit.clip_model, fit.footprint, channel)
     ok = (y > 0) & (f > 0)
     fig, ax = plt.subplots(figsize=(6.6, 5.8), layout="constrained")
     if ok.any():
@@ -232,6 +254,71 @@ def plot_measured_vs_fitted(df, fit, path, *, channel: str | None = None) -> Pat
     ax.set_xlabel("fitted BRDF (1/sr)")
     ax.set_ylabel("measured BRDF (1/sr)")
     ax.set_title(f"{channel}: measured vs fitted (red: identity)", fontsize=10)
+    path = Path(path)
+    fig.savefig(path, dpi=_DPI)
+    plt.close(fig)
+    return path
+
+
+def plot_uncertainty_budget(material_fit, path) -> Path:
+    """The uncertainty budget of every channel: per channel a table (value, the
+    standard uncertainty of each component, combined, coverage factor, 95 % interval;
+    rotation in degrees) and bars of each component's share of the combined variance."""
+    from glossrig.core.fitting.uncertainty import COMPONENTS, PARAM_NAMES, significant_digits
+
+    plt = _plt()
+    fits = [(c, f) for c, f in material_fit.fits.items() if f.uncertainty]
+    n = max(1, len(fits))
+    fig, axes = plt.subplots(n, 2, figsize=(15, 2.3 * n + 0.8), squeeze=False, layout="constrained",
+                             gridspec_kw={"width_ratios": [3.2, 1]})
+    colours = {"noise": "tab:blue", "model": "tab:orange", "footprint": "tab:green", "calibration": "tab:red"}
+
+    def fmt(v, deg, digits=3):
+        if v is None:
+            return "-"
+        return f"{np.degrees(v):.{digits}g} deg" if deg else f"{v:.{digits}g}"
+
+    for row, (c, f) in enumerate(fits):
+        unc = f.uncertainty
+        comps = [k for k in COMPONENTS if any(k in unc[p]["components"] for p in PARAM_NAMES)]
+        cells = []
+        for p in PARAM_NAMES:
+            e, deg = unc[p], p == "lobe_rotation"
+            iv = e["interval95"]
+            n = significant_digits(e["value"], e["combined"])
+            cells.append([fmt(e["value"], deg, n)] + [fmt(e["components"].get(k), deg) for k in comps]
+                         + [fmt(e["combined"], deg), f"{e['coverage_factor']:.2f}",
+                            "-" if iv is None else f"[{fmt(iv[0], deg, n)}, {fmt(iv[1], deg, n)}]"])
+        ax = axes[row, 0]
+        ax.axis("off")
+        widths = [0.11] + [0.1] * len(comps) + [0.1, 0.05, 0.25]
+        tab = ax.table(cellText=cells, rowLabels=list(PARAM_NAMES),
+                       colLabels=["value"] + [f"u {k}" for k in comps] + ["u combined", "k", "95 % interval"],
+                       colWidths=[w / sum(widths) * 0.9 for w in widths], loc="center", cellLoc="center")
+        tab.auto_set_font_size(False)
+        tab.set_fontsize(8)
+        tab.scale(1, 1.25)
+        omitted = ", ".join(sorted(unc.get("budget", {}).get("omitted", {}))) or "none"
+        ax.set_title(f"{c}: uncertainty budget (standard uncertainties; omitted: {omitted})", fontsize=9)
+        ax = axes[row, 1]
+        left = np.zeros(len(PARAM_NAMES))
+        for k in comps:
+            share = []
+            for p in PARAM_NAMES:
+                e = unc[p]
+                u, uc = e["components"].get(k), e["combined"]
+                share.append((u / uc) ** 2 if (u is not None and uc) else 0.0)
+            ax.barh(range(len(PARAM_NAMES)), share, left=left, color=colours.get(k, "0.5"), label=k)
+            left += np.array(share)
+        ax.set_yticks(range(len(PARAM_NAMES)))
+        ax.set_yticklabels(PARAM_NAMES, fontsize=8)
+        ax.invert_yaxis()
+        ax.set_xlim(0, 1)
+        ax.set_xlabel("share of combined variance", fontsize=8)
+        if row == 0:
+            ax.legend(fontsize=7, ncol=2, loc="lower center", bbox_to_anchor=(0.5, 1.0))
+    if not fits:
+        axes[0, 0].text(0.5, 0.5, "no uncertainty budget in this fit", ha="center")
     path = Path(path)
     fig.savefig(path, dpi=_DPI)
     plt.close(fig)
@@ -252,5 +339,7 @@ def write_plots(df, material_fit, out_dir, *, channels=None) -> list[Path]:
         written.append(plot_rig_slices(df, fit, out / f"{c}_rig_slices.png"))
         written.append(plot_residuals(df, fit, out / f"{c}_residuals.png"))
         written.append(plot_measured_vs_fitted(df, fit, out / f"{c}_measured_vs_fitted.png"))
+    if any(f.uncertainty for f in material_fit.fits.values()):
+        written.append(plot_uncertainty_budget(material_fit, out / "uncertainty_budget.png"))
     return written
 

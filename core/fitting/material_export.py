@@ -40,9 +40,9 @@ shape. Knows nothing of Mitsuba itself (core imports neither twin nor Mitsuba).
 """
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
+from typing import Any
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -75,10 +75,13 @@ _COLUMN_DOC = {
     "phi_h": ("radian", "azimuth of the half vector"),
     "theta_d": ("radian", "Rusinkiewicz difference angle theta_d"),
     "phi_d": ("radian", "Rusinkiewicz difference angle phi_d"),
-    "r": ("1/sr", "BRDF value, red channel (thesis eq. 4.78)"),
-    "g": ("1/sr", "BRDF value, green channel"),
-    "b": ("1/sr", "BRDF value, blue channel"),
+    "r": ("1/sr", "BRDF value, red channel (thesis eq. 4.78); empty (NaN): missing, out of dynamic range"),
+    "g": ("1/sr", "BRDF value, green channel; empty (NaN): missing"),
+    "b": ("1/sr", "BRDF value, blue channel; empty (NaN): missing"),
     "weight": ("1", "relative statistical weight, proportional to 1 / variance"),
+    "weight_r": ("1", "statistical weight of r alone, on the scale of weight; empty where r is missing"),
+    "weight_g": ("1", "statistical weight of g alone, on the scale of weight; empty where g is missing"),
+    "weight_b": ("1", "statistical weight of b alone, on the scale of weight; empty where b is missing"),
     "u": ("pixel", "image column"),
     "v": ("pixel", "image row"),
     "led": ("id", "LED id of the rig description"),
@@ -107,7 +110,7 @@ def _comment(text: str, indent: str = "") -> str:
 
 
 def _xml_object(d: dict, indent: str, name: str | None = None, id: str | None = None) -> str:
-    kind = d.get("type")
+    kind: Any = d.get("type")
     tag = _OBJECT_TAGS.get(kind)
     if tag is None:
         raise ValueError(f"no Mitsuba object tag known for plugin type {kind!r}")
@@ -259,17 +262,20 @@ def samples_csv_bytes(df) -> bytes:
 
 
 def read_samples_csv(path: str | Path):
-    """Read a ``samples.csv`` with the dtypes its sidecar ``samples.csv.json`` records."""
+    """Read a ``samples.csv`` with the dtypes its sidecar ``samples.csv.json`` records (the
+    one reader of both files; errors name the file)."""
     import pandas as pd
+
+    from glossrig.core.toml_input import read_json
 
     path = Path(path)
     side = path.with_name(path.name + ".json")
+    if not side.exists():
+        raise InputError("sidecar not found (it records the columns' dtypes)", path=side)
+    meta = read_json(side, "samples.csv sidecar")
     try:
-        meta = json.loads(side.read_text())
         dtypes = {c["name"]: c["dtype"] for c in meta["columns"]}
-    except FileNotFoundError:
-        raise InputError("sidecar not found (it records the columns' dtypes)", path=side) from None
-    except (OSError, ValueError, KeyError, TypeError) as e:
+    except (KeyError, TypeError) as e:
         raise InputError(f"not a samples.csv sidecar ({e})", path=side) from None
     try:
         df = pd.read_csv(path, dtype=dtypes)
@@ -314,7 +320,7 @@ def write_exports(fit, samples_df, out_dir: str | Path) -> list[Path]:
     Each file is written atomically. Returns the paths written, in that order.
 
     The measure verb calls it with ``DIR / "exports"``."""
-    from glossrig.core.capture import atomic_write_bytes
+    from glossrig.core.atomic import atomic_write_bytes, atomic_write_json
     from glossrig.core.fitting.export import mitsuba_material
     from glossrig.core.models.stock_bsdf import fit_stock
 
@@ -368,7 +374,7 @@ def write_exports(fit, samples_df, out_dir: str | Path) -> list[Path]:
     doc = stock.to_json()
     doc["source"] = source
     doc["mitsuba"] = stock_material(stock)          # what material_stock.xml holds, as a mi.load_dict dict
-    atomic_write_bytes(path, (json.dumps(doc, indent=2, allow_nan=False, default=_json_default) + "\n").encode())
+    atomic_write_json(path, doc, indent=2, allow_nan=False, default=_json_default)
     paths.append(path)
 
     # BRDF Explorer.
@@ -387,7 +393,7 @@ def write_exports(fit, samples_df, out_dir: str | Path) -> list[Path]:
     paths.append(path)
     path = out / SAMPLES_CSV_SIDECAR
     side = samples_csv_sidecar(samples_df)
-    atomic_write_bytes(path, (json.dumps(side, indent=2, default=_json_default) + "\n").encode())
+    atomic_write_json(path, side, indent=2, default=_json_default)
     paths.append(path)
     return paths
 

@@ -35,9 +35,11 @@ def _conv(a: dict, b: dict) -> dict:
     return out
 
 
-def luminance_kernel(cfa="RGGB", render: str = "area") -> tuple[np.ndarray, np.ndarray]:
+def luminance_kernel(cfa="RGGB", render: str = "area", *, weights=None,
+                     pixel_rule: str = "midpoint") -> tuple[np.ndarray, np.ndarray]:
     """Pixel offsets ``(m, 2)`` (column, row) from the block centre and weights ``(m,)``
-    of the luminance value of one sample.
+    of the luminance value of one sample (``weights``: the R, G, B weights of another
+    channel instead of Rec. 709 Y, e.g. ``(1, 0, 0)`` for r).
 
     Per CFA plane (di, dj), :func:`glossrig.core.extraction.extract.block_values` reads the plane
     bilinearly at the block centre, which is (0.5 - di, 0.5 - dj) px from the plane's
@@ -45,27 +47,43 @@ def luminance_kernel(cfa="RGGB", render: str = "area") -> tuple[np.ndarray, np.n
     for di = 0, 1/4 at -1.5 and 3/4 at +0.5 for di = 1 (columns alike). G is the mean
     of its two planes, luminance is Rec. 709 Y of R, G, B. Each pixel integrates its
     area (box); ``render="old"`` adds a 1-px tent (bilinear read of a canvas at the
-    output resolution, averaged over the sub-pixel phase)."""
+    output resolution, averaged over the sub-pixel phase). The pixel's area is
+    integrated by the midpoint rule on a 1/4-px grid (``pixel_rule="midpoint"``) or by
+    N-point Gauss-Legendre per axis (``"gaussN"``: N^2 points a pixel, exact for
+    integrands of degree 2N - 1 across the pixel; ``"gauss2"`` already gives the box's
+    variance 1/12 px^2 exactly; ``"gaussNxM"``: N along columns, M along rows)."""
     from glossrig.core.calibration.demosaic import cfa_array
     from glossrig.core.samples import LUMINANCE_WEIGHTS
 
     cid = cfa_array(cfa)
     n_planes = np.bincount(cid.ravel(), minlength=3)
+    chan_w = LUMINANCE_WEIGHTS if weights is None else tuple(float(x) for x in weights)
     lattice = {0: {-0.5: 0.75, 1.5: 0.25}, 1: {-1.5: 0.25, 0.5: 0.75}}
-    pix = _box()
+    orders = pixel_rule[5:].split("x") if pixel_rule.startswith("gauss") else []
+    if orders and len(orders) <= 2 and all(o.isdigit() and int(o) >= 1 for o in orders):
+        def gauss(m):
+            nodes, gw = np.polynomial.legendre.leggauss(m)
+            return {round(0.5 * float(x), 9): 0.5 * float(g) for x, g in zip(nodes, gw)}
+
+        pix_c, pix_r = gauss(int(orders[0])), gauss(int(orders[-1]))
+    elif pixel_rule == "midpoint":
+        pix_c = pix_r = _box()
+    else:
+        raise ValueError(f"pixel_rule must be 'midpoint', 'gaussN' or 'gaussNxM' (N, M >= 1), got {pixel_rule!r}")
     if render == "old":
-        pix = _conv(pix, _conv(_box(), _box()))
+        pix_c, pix_r = (_conv(p, _conv(_box(), _box())) for p in (pix_c, pix_r))
     elif render != "area":
         raise ValueError(f"render must be 'area' or 'old', got {render!r}")
     acc: dict = {}
     for di in range(2):
         for dj in range(2):
             c = int(cid[di, dj])
-            w_c = LUMINANCE_WEIGHTS[c] / n_planes[c]
-            rows, cols = _conv(lattice[di], pix), _conv(lattice[dj], pix)
+            w_c = chan_w[c] / n_planes[c]
+            rows, cols = _conv(lattice[di], pix_r), _conv(lattice[dj], pix_c)
             for y, wy in rows.items():
                 for x, wx in cols.items():
                     acc[(x, y)] = acc.get((x, y), 0.0) + w_c * wy * wx
+    acc = {k: v for k, v in acc.items() if v != 0.0}       # planes of channels with weight 0
     offs = np.array(list(acc.keys()), float)
     w = np.array(list(acc.values()))
     return offs, w / w.sum()

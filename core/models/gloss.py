@@ -351,7 +351,7 @@ def _e430_values(R: dict) -> dict:
 # ----------------------------------------------------------------------------- GGX from Ward
 
 def _rig_directions(p: WardParams, n_r: int = 9, n_beta: int = 12, n_td: int = 3, n_pd: int = 6,
-                    theta_d_range_deg=RIG_THETA_D_RANGE_DEG):
+                    theta_d_range_deg: tuple[float, float] = RIG_THETA_D_RANGE_DEG):
     """Angle dict of direction pairs in the rig's range: half vectors on an elliptical polar
     grid in the lobe's axes out to 3 widths (tan theta_h = r alpha along each axis), theta_d
     over the rig's range, every phi_d; pairs with a direction below the horizon dropped."""

@@ -321,11 +321,11 @@ def fit_stock(df, ward, *, weighting: str = "mirror", use_weight_column: bool = 
         stats = _residual_stats(y_k, f, W_k, None, False)
         fits[kind] = (au, av, rot, float(a), float(b), B, stats)
         candidates[kind] = stats["weighted_rmse"]
-    kind = min(candidates, key=candidates.get)
+    kind = min(candidates, key=lambda k: candidates[k])
     au, av, rot, a, b, B, stats = fits[kind]
     rot = rot % math.pi                          # D and G are pi-periodic in the rotation
     params = StockParams(rho_d=a, rho_s=b, alpha_u=au, alpha_v=av, rotation=rot, distribution=kind)
-    rgb = {"rho_d": [], "rho_s": []}
+    rgb: dict[str, list[float]] = {"rho_d": [], "rho_s": []}
     for c in ("r", "g", "b"):
         yc = np.asarray(df[c], float)
         kc = keep & np.isfinite(yc)

@@ -185,7 +185,7 @@ class WardGeometry:
     shape: tuple = ()
 
     def take(self, idx) -> WardGeometry:
-        kd = self.kd if np.isscalar(self.kd) else self.kd[idx]
+        kd = self.kd[idx] if isinstance(self.kd, np.ndarray) else self.kd
         sx = self.sx[idx]
         return WardGeometry(sx, self.sy[idx], self.g[idx], kd, sx.shape)
 

@@ -108,8 +108,10 @@ def material_brdf(material: Material, a: dict, rotation_deg: float) -> np.ndarra
     """BRDF (1/sr) of ``material`` at the angles ``a`` of
     :func:`glossrig.core.design.coverage.direction_angles` (``half=True``) at a sample rotation."""
     if material.kind == "lambert":
+        assert material.albedo is not None      # a Lambertian Material has one (materials.lambert)
         return np.full(a["theta_in"].shape, material.albedo / math.pi)
     if material.kind == "ward":
+        assert material.ward is not None        # a Ward Material has its parameters
         return ward_from_angles(np.radians(a["theta_in"]), np.radians(a["theta_out"]), np.radians(a["theta_h"]),
                                 np.radians(np.mod(a["phi_h"] - rotation_deg, 360.0)), material.ward)
     raise InputError(f"exposure planning needs an extended-Ward or Lambertian material, got {material.kind} "
@@ -167,7 +169,7 @@ def rate_bins(rates: np.ndarray, margin: float, width: float = 0.02) -> tuple[np
     return hi * margin, lo / margin, count
 
 
-def neighbour_links(times: Sequence[float], hi: np.ndarray, lo: np.ndarray, count: np.ndarray, noise: HdrNoise,
+def neighbour_links(times: Sequence[float] | np.ndarray, hi: np.ndarray, lo: np.ndarray, count: np.ndarray, noise: HdrNoise,
                     pixel_factor: float = 1.0, min_pixels: int = NEIGHBOUR_MIN_PIXELS) -> tuple[np.ndarray, np.ndarray]:
     """Predicted neighbour correction of one sequence (requirement 3 of the module docstring).
 
@@ -476,11 +478,12 @@ def white_patch_exposures(rig, exposures_by_led: dict[int, Sequence[float]], iso
     aperture = float(rig.sequence_aperture if aperture is None else aperture)
     if not (iso > 0 and aperture > 0):
         raise InputError(f"ISO and f-number must be > 0, got {iso}, {aperture}")
-    sen = rig.section("sensor")
-    e_per_dn = float(sen["electrons_per_dn_iso100"]) * 100.0 / iso
+    e_per_dn = rig.sensor.electrons_per_dn_iso100 * 100.0 / iso
     span_dn = rig.camera.white_level - max(rig.camera.black_level)
-    sat_e = min(float(sen["full_well_e"]), span_dn * e_per_dn)
-    albedo = float(rig.section("holder")["marker"].get("white_albedo", WHITE_PATCH_ALBEDO))
+    sat_e = min(rig.sensor.full_well_e, span_dn * e_per_dn)
+    albedo = rig.holder.marker.white_albedo
+    if albedo is None:
+        albedo = WHITE_PATCH_ALBEDO
     corners = holder_marker_corners(rig, inner=True)
     pts = np.vstack([corners, corners.mean(axis=0)])
     # electron_rate is at the rig's sequence f-number; scale to the plan's

@@ -46,7 +46,7 @@ from glossrig.core.errors import InputError
 __all__ = [
     "NoiseModel", "ExposureStack", "NeighbourReport", "HdrResult",
     "combine_repeats", "stack_frames", "neighbour_correct", "hdr_thesis", "hdr_ml", "hdr_from_stack",
-    "VALID", "TOO_DARK", "TOO_BRIGHT", "TOO_FEW", "STATUS_REASONS",
+    "VALID", "TOO_DARK", "TOO_BRIGHT", "TOO_FEW", "STATUS_REASONS", "LO", "HI", "exposure_to_fix",
 ]
 
 #: Status codes of :class:`HdrResult` (``status`` array); NaN rate for all but VALID.
@@ -58,6 +58,10 @@ STATUS_REASONS = {
     TOO_BRIGHT: "too bright: saturated, or expected above the upper limit, even at the shortest exposure",
     TOO_FEW: "fewer valid exposures than min_valid",
 }
+
+#: :func:`hdr_ml`'s default validity window of an exposure's expected value (fractions of
+#: the white-black range): the noise floor ``LO`` and the top ``HI`` (see hdr_ml).
+LO, HI = 0.002, 0.95
 
 #: Pixels per block in :func:`hdr_ml` / :func:`hdr_thesis` (bounds the (n, block) float64 temporaries).
 _BLOCK = 1 << 17
@@ -109,14 +113,10 @@ class NoiseModel:
     def from_rig(cls, rig, iso: float | None = None) -> NoiseModel:
         """From a :class:`glossrig.core.rig.Rig`: its ``[camera]`` levels and
         ``[sensor]`` figures, at ``iso`` (default: the rig's sequence ISO)."""
-        sec = rig.raw.get("sensor")
-        if not isinstance(sec, dict) or "electrons_per_dn_iso100" not in sec or "read_noise_e" not in sec:
-            raise InputError("rig has no [sensor] section with electrons_per_dn_iso100 and read_noise_e "
-                             "(needed for HDR weighting)", path=rig.path)
         return cls.from_sensor(white=rig.camera.white_level, black=rig.camera.black_level,
                                iso=rig.sequence_iso if iso is None else iso,
-                               electrons_per_dn_iso100=float(sec["electrons_per_dn_iso100"]),
-                               read_noise_e=float(sec["read_noise_e"]))
+                               electrons_per_dn_iso100=rig.sensor.electrons_per_dn_iso100,
+                               read_noise_e=rig.sensor.read_noise_e)
 
     def variance(self, value, repeats: int = 1):
         """Variance of the mean of ``repeats`` frames of expected ``value``."""
@@ -175,7 +175,7 @@ def combine_repeats(linear, *, saturation: float = 1.0) -> tuple[np.ndarray, np.
     _check_finite(a, "linear images")
     combined = a.mean(axis=0, dtype=np.float64).astype(np.float32)
     clipped = (a >= saturation).any(axis=0)
-    return combined, clipped
+    return combined, clipped  # type: ignore[return-value]  # numpy's stubs type any(axis=...) as bool | array
 
 
 def _same(x, y) -> bool:
@@ -572,8 +572,8 @@ class HdrResult:
         return {STATUS_REASONS[int(v)]: int(c) for v, c in zip(vals, cnt)}
 
 
-def hdr_ml(images, exposure_s, noise: NoiseModel, *, repeats: int = 1, clipped=None, lo: float = 0.002,
-           hi: float = 0.95, min_valid: int = 1, iterations: int = 4) -> HdrResult:
+def hdr_ml(images, exposure_s, noise: NoiseModel, *, repeats: int = 1, clipped=None, lo: float = LO,
+           hi: float = HI, min_valid: int = 1, iterations: int = 4) -> HdrResult:
     """HDR rate of a linear sensor: inverse-variance weighted fit through
     the origin. Replaces thesis eq. 4.39-4.44 (see :func:`hdr_thesis`).
 
@@ -694,3 +694,41 @@ def hdr_from_stack(stack: ExposureStack, noise: NoiseModel, *, correction: str |
     if correction is not None:
         images, _ = neighbour_correct(images, stack.exposure_s, clipped=stack.clipped, method=correction)
     return hdr_ml(images, stack.exposure_s, noise, repeats=stack.repeats, clipped=stack.clipped, **kwargs)
+
+
+def exposure_to_fix(stack: ExposureStack, status, *, lo: float = LO, hi: float = HI) -> np.ndarray:
+    """Per pixel, the exposure time (s) that would have given a pixel of ``status``
+    TOO_DARK or TOO_BRIGHT (an :class:`HdrResult`'s, of this ``stack``) a valid value;
+    NaN for valid pixels and where it cannot be told.
+
+    Too dark: the longest exposure scaled by the ratio of the noise floor ``lo`` to the
+    pixel's expected value there, i.e. ``lo / r`` with the rate ``r`` of the two longest
+    exposures, ``(y_n + y_n-1) / (t_n + t_n-1)`` (the shot-noise maximum-likelihood rate
+    over them; no validity window, since every exposure of a dark pixel is below it; the
+    shorter ones carry little signal and, clipped at 0 by linearisation, would bias it
+    upwards). A single pixel's value is noisy (about 30 % at half the floor with the
+    rig's sensor): read it over a region. Infinite where no signal was seen at all. Too
+    bright: ``hi / r`` with ``r`` from the shortest exposure when that one is not
+    saturated (its value above ``hi``); NaN when it is saturated, since then only
+    "shorter than the shortest" is known."""
+    st = np.asarray(status)
+    t = np.asarray(stack.exposure_s, float)
+    out = np.full(st.shape, np.nan)
+    dark = st == TOO_DARK
+    if dark.any():
+        last = slice(max(0, t.size - 2), t.size)
+        yd = stack.images[last][:, dark].astype(np.float64)
+        ok = ~stack.clipped[last][:, dark] & (yd < 1.0)
+        num = np.where(ok, yd, 0.0).sum(axis=0)
+        den = (t[last, None] * ok).sum(axis=0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = num / den
+            out[dark] = np.where(r > 0, lo / r, np.inf)
+    bright = st == TOO_BRIGHT
+    if bright.any():
+        y0 = stack.images[0][bright].astype(np.float64)
+        seen = ~stack.clipped[0][bright] & (y0 < 1.0) & (y0 > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[bright] = np.where(seen, hi * t[0] / y0, np.nan)
+    return out
+

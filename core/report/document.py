@@ -30,12 +30,12 @@ from __future__ import annotations
 
 import base64
 import html
-import json
 import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -55,7 +55,7 @@ UNITS = {"rho_d": "", "rho_s": "", "alpha_x": "", "alpha_y": "", "lobe_rotation"
 @dataclass
 class _Block:
     kind: str                      # h, p, note, table, fig, items, code
-    data: object
+    data: Any                      # by kind: str, list of str, (header, rows), figure path
     extra: dict = field(default_factory=dict)
 
 
@@ -243,14 +243,14 @@ def _describe(path) -> dict | None:
 def _truth(sample_dir) -> dict | None:
     if sample_dir is None:
         return None
-    from glossrig.core.capture import TRUTH
+    from glossrig.core.capture import TRUTH, read_truth
 
     p = Path(sample_dir) / TRUTH
     if not p.is_file():
         return None
     try:
-        return json.loads(p.read_text())
-    except (OSError, ValueError):
+        return read_truth(p)
+    except InputError:
         return None
 
 
@@ -365,15 +365,15 @@ def _capture_section(doc: _Doc, name: str, folder):
     isos = sorted({im.iso for im in seq})
     aps = sorted({im.aperture for im in seq})
     twin = man.meta.get("twin")
-    rows = [["folder", str(folder)], ["material label", man.material],
-            ["rig", f"{man.meta.get('rig_name', '-')} ({man.rig})"], ["complete", man.complete],
-            ["images", f"{len(man.images)} ({len(seq)} sequence, {len(man.select('calibration'))} calibration, "
-                       f"{len(man.select('checkerboard'))} checkerboard)"],
-            ["rotations (deg)", ", ".join(f"{r:g}" for r in man.rotations()) or "-"],
-            ["LEDs", ", ".join(str(i) for i in leds) or "-"],
-            ["exposures (s)", (f"{len(exps)}: " + ", ".join(f"{t:g}" for t in exps)) if exps else "-"],
-            ["repeats", len(reps)], ["ISO", ", ".join(str(i) for i in isos) or "-"],
-            ["f-number", ", ".join(f"{a:g}" for a in aps) or "-"]]
+    rows: list[list] = [["folder", str(folder)], ["material label", man.material],
+                        ["rig", f"{man.meta.get('rig_name', '-')} ({man.rig})"], ["complete", man.complete],
+                        ["images", f"{len(man.images)} ({len(seq)} sequence, {len(man.select('calibration'))} calibration, "
+                                   f"{len(man.select('checkerboard'))} checkerboard)"],
+                        ["rotations (deg)", ", ".join(f"{r:g}" for r in man.rotations()) or "-"],
+                        ["LEDs", ", ".join(str(i) for i in leds) or "-"],
+                        ["exposures (s)", (f"{len(exps)}: " + ", ".join(f"{t:g}" for t in exps)) if exps else "-"],
+                        ["repeats", len(reps)], ["ISO", ", ".join(str(i) for i in isos) or "-"],
+                        ["f-number", ", ".join(f"{a:g}" for a in aps) or "-"]]
     if man.meta.get("backends"):
         rows.append(["backends", ", ".join(f"{k}: {v}" for k, v in man.meta["backends"].items())])
     if isinstance(twin, dict):
@@ -621,7 +621,7 @@ def write_report(out_dir, *, fit_json, samples, sample_dir=None, reference_dir=N
     is drawn here when the sample capture and camera.json are given. ``hdr=False``
     skips the HDR images (reading every raw file of the sample capture)."""
     from glossrig.core.fitting import fit_plots
-    from glossrig.core.capture import atomic_write_bytes
+    from glossrig.core.atomic import atomic_write_bytes
     from glossrig.core.report.figures import plot_coverage, coverage_stats, plot_incidence_slices, plot_polar_lobe
     from glossrig.core.samples import read_samples
 

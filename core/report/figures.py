@@ -79,7 +79,7 @@ def _blocks(a: np.ndarray, how: str) -> np.ndarray:
     h, w = (a.shape[0] // 2) * 2, (a.shape[1] // 2) * 2
     b = a[:h, :w].reshape(h // 2, 2, w // 2, 2)
     if how == "any":
-        return b.any(axis=(1, 3))
+        return b.any(axis=(1, 3))  # type: ignore[return-value]  # numpy's stubs type any(axis=...) as bool | array
     with np.errstate(invalid="ignore"):
         import warnings
 

@@ -17,7 +17,6 @@ reads it - this is an evaluation, made after the measurement, for the report and
 """
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -27,47 +26,39 @@ FORMAT = "glossrig-recovery/1"
 PARAMS = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
 
 
-def _read(path, what: str) -> dict:
-    p = Path(path)
-    try:
-        d = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{what} not found", path=p) from None
-    except (OSError, ValueError) as e:
-        raise InputError(f"{what} is not readable JSON ({e})", path=p) from None
-    if not isinstance(d, dict):
-        raise InputError(f"{what} is not a JSON object", path=p)
-    return d
-
-
 def recovery_table(truth_json, *, camera_json=None, lamps_json=None, fit_json=None) -> dict:
     """The recovery table of a measurement of a twin capture (module docstring): a JSON
     dict with ``"intrinsics"``, ``"lamps"`` and ``"material"`` (each present when its
-    input is given). ``truth_json``: the sample capture's ``truth.json``."""
+    input is given). ``truth_json``: the sample capture's ``truth.json``. Each file is
+    read by its one reader (errors name the file)."""
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.calibration.lamps import load_lamps
+    from glossrig.core.capture import read_truth
+    from glossrig.core.fitting.export import read_fit_json
     from glossrig.core.fitting.fit import canonical, parameter_errors
     from glossrig.core.models.ward import WardParams
 
-    truth = _read(truth_json, "truth.json")
+    truth = read_truth(truth_json)
     out: dict = {"format": FORMAT}
     if camera_json is not None and "camera_matrix" in truth:
-        cam = _read(camera_json, "camera calibration")
+        cam = load_camera(camera_json)
         K = truth["camera_matrix"]
         out["intrinsics"] = {
-            "fx_error_percent": 100.0 * (float(cam["fx"]) / K[0][0] - 1.0),
-            "fy_error_percent": 100.0 * (float(cam["fy"]) / K[1][1] - 1.0),
-            "cx_error_px": float(cam["cx"]) - K[0][2], "cy_error_px": float(cam["cy"]) - K[1][2]}
+            "fx_error_percent": 100.0 * (cam.fx / K[0][0] - 1.0),
+            "fy_error_percent": 100.0 * (cam.fy / K[1][1] - 1.0),
+            "cx_error_px": cam.cx - K[0][2], "cy_error_px": cam.cy - K[1][2]}
     if lamps_json is not None and "led_positions_mm" in truth:
-        lamps = _read(lamps_json, "lamp calibration").get("lamps_mm") or {}
+        lamps = load_lamps(lamps_json)
         true_leds = truth["led_positions_mm"]
         per = {str(k): math.dist(v, true_leds[str(k)]) for k, v in lamps.items() if str(k) in true_leds}
         out["lamps"] = {"worst_error_mm": max(per.values()) if per else None, "n_leds": len(per),
                         "error_mm": per}
     if fit_json is not None:
-        lum = _read(fit_json, "fit.json").get("luminance")
+        lum = read_fit_json(fit_json).fits.get("luminance")
         mat = truth.get("material") or {}
         m: dict = {"label": mat.get("label", mat.get("kind"))}
-        if isinstance(lum, dict):
-            m["fitted"] = {k: float(lum[k]) for k in PARAMS}
+        if lum is not None:
+            m["fitted"] = {k: float(getattr(lum.params, k)) for k in PARAMS}
             if isinstance(mat.get("ward"), dict):
                 t, _ = canonical(WardParams(**{k: float(mat["ward"][k]) for k in PARAMS}))
                 err = parameter_errors(m["fitted"], t)
@@ -76,6 +67,19 @@ def recovery_table(truth_json, *, camera_json=None, lamps_json=None, fit_json=No
                               "lobe_rotation_deg": err["lobe_rotation_deg"]}
         out["material"] = m
     return out
+
+
+def read_recovery(path: str | Path) -> dict:
+    """A recovery table written as ``recovery.json`` (``glossrig measure`` / ``demo``; a
+    :func:`recovery_table`): the one reader of the file. Errors name the file."""
+    from glossrig.core.toml_input import read_json
+
+    path = Path(path)
+    d = read_json(path, "recovery table")
+    if not isinstance(d, dict) or d.get("format") != FORMAT:
+        got = d.get("format") if isinstance(d, dict) else type(d).__name__
+        raise InputError(f"not a glossrig recovery table (format {got!r}, expected {FORMAT!r})", path=path)
+    return d
 
 
 def format_recovery(rec: dict) -> list[str]:

@@ -64,11 +64,14 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from collections.abc import Callable, Sequence
+from typing import cast
 
 import numpy as np
 from scipy.optimize import least_squares, minimize, minimize_scalar
 
+from glossrig.core.atomic import atomic_write_text
 from glossrig.core.errors import InputError
+from glossrig.core.toml_input import read_json
 from glossrig.core.models.ward import (ALPHA_MAX, LOBE_ROTATION_MAX, WardParams, check_physical, ward_from_angles, ward_geometry,
                    ward_param_jacobian)
 
@@ -195,7 +198,7 @@ def load_ward_table(path) -> dict[str, WardParams]:
         if key in out:
             raise InputError(f"Ward parameter table: duplicate name {name!r}", path=path)
         try:
-            out[key] = check_physical(WardParams(*(float(cols[c][i]) for c in need[1:]), lobe_rotation=float(rot[i])),
+            out[key] = check_physical(WardParams(**{c: float(cols[c][i]) for c in need[1:]}, lobe_rotation=float(rot[i])),
                                       what="Ward parameters")
         except InputError as e:
             raise InputError(f"row {i + 1} ({name}): {e}", path=path) from None
@@ -281,7 +284,7 @@ def angles_from_table(df, info: dict | None = None, max_samples: int | None = No
     sub = df.iloc[::stride]
     info = dict(info or {})
     info.update(rows_total=int(n), stride=stride, rows_used=int(len(sub)))
-    return AngleSet(*(sub[c].to_numpy(dtype=np.float64) for c in ("theta_in", "theta_out", "theta_h", "phi_h")),
+    return AngleSet(**{c: sub[c].to_numpy(dtype=np.float64) for c in ("theta_in", "theta_out", "theta_h", "phi_h")},
                     info=info)
 
 
@@ -373,21 +376,55 @@ def best_mix(targets: np.ndarray, f_b1: np.ndarray, f_b2: np.ndarray, clip: floa
 
 # ----------------------------------------------------------------------------- ETN
 
+#: the ETN forms a model file may name (``etn.form``): the offset form this module fits,
+#: and eq. 6.7 as printed (module docstring)
+ETN_FORMS = ("eq6.7-offset", "eq6.7")
+# the two forms' formulas as ETN_FORM and a hand-written file spell them, whitespace removed
+_OFFSET_FORMULA = "gamma[0]/(gamma[2]+exp(-gamma[1]*effective_b2))+gamma[3]"
+_PRINTED_FORMULA = "gamma[0]/((gamma[2]+exp(-gamma[1]*effective_b2))+gamma[3])"
+
+
+def _etn_form(value) -> str | None:
+    """Canonical form name (:data:`ETN_FORMS`) of an ``etn.form`` value (absent: the
+    offset form; :data:`ETN_FORM` and the printed formula are recognised), or None."""
+    if value is None:
+        return "eq6.7-offset"
+    if not isinstance(value, str):
+        return None
+    if value in ETN_FORMS:
+        return value
+    compact = "".join(value.split())
+    if _PRINTED_FORMULA in compact:
+        return "eq6.7"
+    if _OFFSET_FORMULA in compact:
+        return "eq6.7-offset"
+    return None
+
+
 @dataclass(frozen=True)
 class ETN:
     """Effective-to-nominal function for base 2 (eq. 6.4, 6.7, corrected):
     ``cn = clip(g1 / (g3 + exp(-g2 ce)) + g4, 0, 1)``.
 
     The printed eq. 6.7 ``g1 / ((g3 + exp(-g2 x)) + g4)`` has g3 and g4 only as a
-    sum; we put g4 outside as an offset (the module docstring says why)."""
+    sum; we put g4 outside as an offset (the module docstring says why). A model file
+    may name the printed form (``form="eq6.7"``); the fit always gives the offset form.
+    ``source``: the model file it was read from (for errors), or empty."""
 
     gamma: tuple[float, float, float, float]
     refit_bounded: bool = False
     converged: bool = True
+    form: str = "eq6.7-offset"
+    source: str = field(default="", compare=False, repr=False)
 
     def raw(self, x) -> np.ndarray:
+        """The nominal coverage before the clip to [0, 1] (fabrication counts the clipped ones)."""
         g1, g2, g3, g4 = self.gamma
-        return g1 / (g3 + np.exp(-g2 * np.asarray(x, dtype=np.float64))) + g4
+        x = np.asarray(x, dtype=np.float64)
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            if self.form == "eq6.7":
+                return g1 / ((g3 + np.exp(-g2 * x)) + g4)
+            return g1 / (g3 + np.exp(-g2 * x)) + g4
 
     def __call__(self, x) -> np.ndarray:
         return np.clip(self.raw(x), 0.0, 1.0)
@@ -397,8 +434,18 @@ class ETN:
         g1, g2, _, _ = self.gamma
         return g1 * g2 > 0
 
+    def check_on_unit_interval(self) -> None:
+        """Refuse parameters whose ETN has a pole or non-finite values for ``ce`` in [0, 1]
+        (:func:`_pole_free`)."""
+        if not _pole_free(self.gamma, self.form):
+            raise InputError(f"ETN with gamma {list(self.gamma)} ({self.form}) has a pole or overflows "
+                             "for effective coverages in [0, 1]", path=self.source or None)
+
     def to_json(self) -> dict:
-        return {"form": ETN_FORM, "equation": "thesis eq. 6.7 (bracket and sign corrected, see docstring)",
+        printed = self.form == "eq6.7"
+        return {"form": self.form if printed else ETN_FORM,
+                "equation": "thesis eq. 6.7 as printed" if printed else
+                            "thesis eq. 6.7 (bracket and sign corrected, see docstring)",
                 "input": "effective_b2", "output": "nominal_b2", "domain": [0.0, 1.0],
                 "gamma": [float(g) for g in self.gamma],
                 "monotone": "increasing" if self.increasing else "decreasing",
@@ -406,19 +453,37 @@ class ETN:
                 "nominal_b1": "1 - nominal_b2 (thesis 6.1)"}
 
     @classmethod
-    def from_json(cls, d: dict, path=None) -> ETN:
-        g = d.get("gamma") if isinstance(d, dict) else None
-        if not isinstance(g, list) or len(g) != 4 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in g):
-            raise InputError("etn.gamma must be a list of 4 finite numbers", path=path)
-        return cls(tuple(float(v) for v in g), bool(d.get("pole_guard_refit", False)), bool(d.get("converged", True)))
+    def from_json(cls, d, path=None) -> ETN:
+        """The ``etn`` object of a model file: ``"gamma": [g1, g2, g3, g4]`` (or ``"gamma1"``
+        ... ``"gamma4"``), optional ``"form"`` (:func:`_etn_form`). Errors name ``path``."""
+        if not isinstance(d, dict):
+            raise InputError("reproduction model lacks the \"etn\" object (thesis eq. 6.7 parameters)", path=path)
+        gamma = d["gamma"] if "gamma" in d else [d.get(f"gamma{i}") for i in range(1, 5)]
+        if (not isinstance(gamma, list) or len(gamma) != 4
+                or not all(isinstance(g, (int, float)) and not isinstance(g, bool) and math.isfinite(g)
+                           for g in gamma)):
+            raise InputError(f"etn parameters must be four finite numbers (\"gamma\": [g1, g2, g3, g4]), got "
+                             f"{gamma!r}", path=path)
+        form = _etn_form(d.get("form"))
+        if form is None:
+            raise InputError(f"etn form must be one of {list(ETN_FORMS)} (or the formula {_OFFSET_FORMULA!r}), "
+                             f"got {d.get('form')!r}", path=path)
+        return cls(_four(gamma), bool(d.get("pole_guard_refit", False)),
+                   bool(d.get("converged", True)), form, "" if path is None else str(path))
 
 
-def _pole_free(g) -> bool:
-    """The denominator g3 + exp(-g2 x) is monotone in x, so it has no zero on
-    [0, 1] iff its (finite) end values share a sign."""
+def _four(v) -> tuple[float, float, float, float]:
+    """ETN parameters as a tuple of floats; ``v`` holds four numbers (checked or fitted)."""
+    return cast("tuple[float, float, float, float]", tuple(float(x) for x in v))
+
+
+def _pole_free(g, form: str = "eq6.7-offset") -> bool:
+    """The denominator c + exp(-g2 x) (c = g3, or g3 + g4 in the printed form) is monotone
+    in x, so it has no zero on [0, 1] iff its (finite) end values share a sign."""
     if not all(math.isfinite(v) for v in g) or abs(g[1]) > 700:
         return False
-    d0, d1 = g[2] + 1.0, g[2] + math.exp(-g[1])
+    c = g[2] + g[3] if form == "eq6.7" else g[2]
+    d0, d1 = c + 1.0, c + math.exp(-g[1])
     return d0 * d1 > 0
 
 
@@ -445,10 +510,10 @@ def fit_etn(effective_b2, nominal_b2) -> ETN:
 
     r = least_squares(res, ETN_START, method="lm", max_nfev=ETN_MAX_NFEV)
     if _pole_free(r.x):
-        return ETN(tuple(float(v) for v in r.x), converged=r.status > 0)
+        return ETN(_four(r.x), converged=r.status > 0)
     lb, ub = [-np.inf, -np.inf, 0.0, -np.inf], [np.inf] * 4
     r = least_squares(res, ETN_START, bounds=(lb, ub), method="trf", max_nfev=ETN_MAX_NFEV)
-    return ETN(tuple(float(v) for v in r.x), refit_bounded=True, converged=r.status > 0)
+    return ETN(_four(r.x), refit_bounded=True, converged=r.status > 0)
 
 
 # ----------------------------------------------------------------------------- base fit
@@ -521,6 +586,7 @@ def fit_bases(targets: np.ndarray, f_b1: np.ndarray, a: AngleSet, starts: Sequen
         costs.append(c)
         if best is None or c < best[0]:
             best = (c, x)
+    assert best is not None, "fit_bases needs at least one start"
     c, x = best
     return BaseFit(_ward_from_vec(x), np.clip(x[5:], 0.0, 1.0), c, len(starts), tuple(costs))
 
@@ -648,16 +714,16 @@ class ReproductionModel:
         }
 
     def save(self, path) -> None:
+        """Write the model file (``model.json``; :func:`read_model_file` reads it) atomically."""
         p = Path(path)
         try:
-            p.write_text(dumps_model(self.to_json()))
+            atomic_write_text(p, dumps_model(self.to_json()))
         except OSError as e:
             raise InputError(f"cannot write model: {e.strerror}", path=p) from None
 
     @classmethod
     def from_json(cls, d: dict, path=None) -> ReproductionModel:
-        if not isinstance(d, dict) or d.get("kind") != KIND:
-            raise InputError(f"not a reproduction model (expected \"kind\": \"{KIND}\")", path=path)
+        _check_kind(d, path)
         try:
             ang = d["angles"]
             arrays = [np.asarray(ang[k], dtype=np.float64) for k in ("theta_in", "theta_out", "theta_h", "phi_h")]
@@ -668,7 +734,7 @@ class ReproductionModel:
             clip = fit.get("clip_level")
             return cls(base1_name=str(d["base1"].get("sample", "base1")), base1=WardParams(**d["base1"]["ward"]),
                        base2=WardParams(**d["base2"]["ward"]), etn=ETN.from_json(d["etn"], path),
-                       clip=None if clip is None else float(clip), angles=AngleSet(*arrays, info=info),
+                       clip=None if clip is None else float(clip), angles=AngleSet(arrays[0], arrays[1], arrays[2], arrays[3], info=info),
                        training=tuple(d.get("training", [])),
                        gamut_threshold=float(d["gamut"]["relative_distance_threshold"]), fit_info=fit)
         except InputError:
@@ -678,14 +744,64 @@ class ReproductionModel:
 
     @classmethod
     def load(cls, path) -> ReproductionModel:
-        p = Path(path)
-        try:
-            d = json.loads(p.read_text())
-        except FileNotFoundError:
-            raise InputError("model file not found", path=p) from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise InputError(f"model is not valid JSON: {e}", path=p) from None
-        return cls.from_json(d, p)
+        """The whole model of a model file (:func:`read_model_file`)."""
+        return cls.from_json(read_model_file(path), Path(path))
+
+
+def _check_kind(doc, path=None) -> None:
+    if not isinstance(doc, dict) or doc.get("kind") != KIND:
+        kind = doc.get("kind") if isinstance(doc, dict) else type(doc).__name__
+        raise InputError(f"expected a reproduction model (\"kind\": \"{KIND}\"), got kind {kind!r}", path=path)
+
+
+def read_model_file(path) -> dict:
+    """The document of a reproduction model file (``model.json``, written by
+    :meth:`ReproductionModel.save` and ``glossrig model fit``): the one reader of the file.
+    Refuses, naming the file, a missing, unreadable or non-JSON file and one of another
+    ``kind``. What each user takes from it: :meth:`ReproductionModel.load` the whole model,
+    fabrication only :func:`load_etn` and :func:`load_bases`, so a file holding just::
+
+        {"kind": "glossrig.reproduction_model",
+         "etn": {"gamma": [g1, g2, g3, g4],   # or "gamma1" ... "gamma4"
+                 "form": "eq6.7-offset"},     # optional, the default (ETN_FORMS, ETN.from_json)
+         "base1": {"ward": {...}}, "base2": {"ward": {...}}}    # optional, both or neither
+
+    drives ``glossrig fabricate --model``."""
+    path = Path(path)
+    doc = read_json(path, "model file")
+    _check_kind(doc, path)
+    return doc
+
+
+def load_etn(path) -> ETN:
+    """The ETN of a model file (:func:`read_model_file`; thesis 6.1 and 7.2.2: fabrication
+    applies it to every pixel before halftoning). Refuses, naming the file, a missing
+    ``etn`` object, parameters that are not four finite numbers, an unknown form and an
+    ETN with a pole on [0, 1]."""
+    path = Path(path)
+    etn = ETN.from_json(read_model_file(path).get("etn"), path)
+    etn.check_on_unit_interval()
+    return etn
+
+
+def load_bases(path) -> tuple[WardParams, WardParams] | None:
+    """The two bases (``base1.ward``, ``base2.ward``) of a model file, checked physical
+    (:func:`glossrig.core.models.ward.check_physical`), or None when it has neither.
+    Only one of them, or malformed parameters, raise :class:`InputError` naming the file."""
+    path = Path(path)
+    doc = read_model_file(path)
+    has = [isinstance(doc.get(k), dict) and isinstance(doc[k].get("ward"), dict) for k in ("base1", "base2")]
+    if not any(has):
+        return None
+    if not all(has):
+        raise InputError("reproduction model has only one of base1.ward / base2.ward", path=path)
+    try:
+        b1, b2 = (check_physical(WardParams(**{k: float(v) for k, v in doc[name]["ward"].items()}),
+                                 where=path, what=f"{name}.ward")
+                  for name in ("base1", "base2"))
+    except (TypeError, ValueError) as e:
+        raise InputError(f"malformed base Ward parameters: {e}", path=path) from None
+    return b1, b2
 
 
 def dumps_model(doc: dict) -> str:
@@ -856,7 +972,9 @@ def detect_outliers(samples: SampleSet, angles: AngleSet, clip: float | None = C
     "violations", "flagged"}], "criterion", "tolerance", "model"}``, ``model``
     being the model fitted to the samples that remain."""
     current = samples
-    rounds, flagged, m = [], [], None
+    rounds: list[dict] = []
+    flagged: list[str] = []
+    m = None
     while len(current) >= 4:
         if progress:
             progress(f"outlier round {len(rounds) + 1}: joint fit of {len(current)} samples")

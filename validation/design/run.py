@@ -1,7 +1,7 @@
 """Regenerate validation/design (issue 8: coverage and geometry-based design).
 
-    .venv/bin/python validation/design/run.py            # everything (about an hour on 2 busy cores)
-    .venv/bin/python validation/design/run.py optimise   # one step: coverage | optimise | one_process | compare
+    .venv/bin/python -m validation.design.run            # everything (about an hour on 2 busy cores)
+    .venv/bin/python -m validation.design.run optimise   # one step: coverage | optimise | one_process | compare
 
 Steps (each a glossrig command, printed before it runs):
 
@@ -20,22 +20,21 @@ exposures glossrig design exposures for every Table 9.1 material on the thesis r
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+from validation.common import glossrig
+from validation.paths import ROOT, thesis_dir
+
 HERE = ROOT / "validation" / "design"
-GLOSSRIG = [sys.executable, "-m", "glossrig.cli.main"]
 MATERIALS = "brushed_original,sanded_original,base_2"
 OPTIMISE = ["design", "optimise", "--rig", "scenes/thesis_rig.toml", "--leds", "16", "--materials", MATERIALS]
 
 
 def sh(args: list[str]) -> float:
-    print("$ glossrig " + " ".join(args), flush=True)
     t0 = time.perf_counter()
-    subprocess.run(GLOSSRIG + args, cwd=ROOT, check=True)
+    glossrig(*args, echo="$", cwd=ROOT)
     return time.perf_counter() - t0
 
 
@@ -84,10 +83,10 @@ def exposures() -> None:
 
     out = HERE / "exposures"
     out.mkdir(exist_ok=True)
-    rows = [r for r in csv.DictReader(l for l in open(ROOT.parent / "shared/data/thesis/ward_params.csv")
+    rows = [r for r in csv.DictReader(l for l in open(thesis_dir() / "ward_params.csv")
                                       if not l.startswith("#"))]
     lines = ["# Exposure plans per material (thesis rig, 8 middle LEDs, one rotation)", "",
-             "Command: `python validation/design/run.py exposures`, i.e. per material",
+             "Command: `python -m validation.design.run exposures`, i.e. per material",
              "`glossrig design exposures --rig scenes/thesis_rig.toml --material M --rotations 0 "
              "--out validation/design/exposures/M.toml --report validation/design/exposures/M.json` "
              "(noise target 3 %, margin 1.1, 9.94 s per shot; LED jitter 0.5 % per frame, frame-gain error "

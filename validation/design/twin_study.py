@@ -39,38 +39,23 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
 
-from glossrig.core.capture import capture_complete
+from glossrig.core.atomic import atomic_write_text
+from glossrig.core.capture import load_manifest, read_truth
+from glossrig.core.fitting.export import read_fit_json
 from glossrig.core.fitting.fit import parameter_errors
+from validation.common import GlossrigFailed, capture, extract, fit, glossrig, needs_capture, truth_camera, truth_lamps
+from validation.paths import RIG as THESIS
+from validation.paths import ROOT
 
 HERE = Path(__file__).resolve().parent
-ROOT = HERE.parents[1]
-from validation.pipeline_study import glossrig
-
-THESIS = ROOT / "scenes/thesis_rig.toml"
 OPTIMISED = ROOT / "scenes/optimised_rig.toml"
 RIGS = {"thesis": (THESIS, "middle"), "thesis16": (THESIS, "all"), "optimised": (OPTIMISED, "all")}
 PARAMS = ("rho_d", "rho_s", "alpha_x", "alpha_y")
 REF_SEED = 100
-
-
-def fresh(folder: Path) -> None:
-    if folder.exists():
-        shutil.rmtree(folder)
-
-
-def simulate(out: Path, rig: Path, material: str, leds: str, rotations: str, repeats: int, scale: float,
-             seed: int) -> Path:
-    if not capture_complete(out):
-        fresh(out)
-        glossrig("simulate", "--rig", rig, "--material", material, "--leds", leds, f"--rotations={rotations}",
-                 "--repeats", repeats, "--scale", scale, "--seed", seed, "--no-progress", "--out", out)
-    return out
 
 
 def planned_capture(out: Path, rig: Path, material: str, leds: str, rotations: str, scale: float,
@@ -81,8 +66,7 @@ def planned_capture(out: Path, rig: Path, material: str, leds: str, rotations: s
         glossrig("design", "exposures", "--rig", rig, "--material", material, "--leds", leds,
                  f"--rotations={rotations}", "--capture-scale", scale, "--seed", seed, "--out", plan,
                  "--report", report)
-    if not capture_complete(out):
-        fresh(out)
+    if needs_capture(out):
         # the plan's own [twin] table (material, --capture-scale, --seed) drives the twin
         glossrig("capture", "--plan", plan, "--lights", "twin", "--camera", "twin", "--out", out, "--no-progress")
     return out, json.loads(report.read_text())
@@ -90,51 +74,37 @@ def planned_capture(out: Path, rig: Path, material: str, leds: str, rotations: s
 
 def truth_calibration(capture: Path, work: Path) -> tuple[Path, Path]:
     """camera.json and lamps.json holding the twin's true intrinsics and lamp positions."""
-    from glossrig.core.calibration.intrinsics import FORMAT
-
-    t = json.loads((capture / "truth.json").read_text())
-    K = np.array(t["camera_matrix"])
-    cam, lamps = work / "camera_truth.json", work / "lamps_truth.json"
-    cam.write_text(json.dumps({"format": FORMAT, "version": 1, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2],
-                               "cy": K[1, 2], "camera_matrix": K.tolist(), "distortion_model": "opencv k1 k2 p1 p2 k3",
-                               "distortion": t["distortion"], "image_size": t["image_size"],
-                               "reprojection_rms_px": 0.0, "source": "twin truth.json"}))
-    lamps.write_text(json.dumps({"kind": "glossrig.lamps", "lamps_mm": t["led_positions_mm"],
-                                 "source": "twin truth.json"}))
-    return cam, lamps
+    return truth_camera(capture, work / "camera_truth.json"), truth_lamps(capture, work / "lamps_truth.json")
 
 
 def extract_fit(capture: Path, ref: Path, cam: Path, lamps: Path) -> dict:
     """Fitted luminance parameters and their errors against the truth."""
-    sp, fj = capture.with_suffix(".parquet"), capture.with_suffix(".fit.json")
-    if not sp.exists():
-        glossrig("extract", capture, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", sp,
-                 "--no-progress")
-    if not fj.exists():
-        glossrig("fit", sp, "--out", fj, "--channels", "luminance")
-    f = json.loads(fj.read_text())["luminance"]
-    t = json.loads((capture / "truth.json").read_text())["material"]["ward"]
+    sp = extract(capture, ref, cam, lamps, capture.with_suffix(".parquet"))
+    fj = fit(sp, capture.with_suffix(".fit.json"), "--channels", "luminance")
+    p = read_fit_json(fj).fits["luminance"].params
+    f = {k: getattr(p, k) for k in (*PARAMS, "lobe_rotation")}
+    t = read_truth(capture)["material"]["ward"]
     err = parameter_errors(f, t)
-    return {"fit": {k: f[k] for k in (*PARAMS, "lobe_rotation")}, "error": err}
+    return {"fit": f, "error": err}
 
 
 def try_extract_fit(capture: Path, ref: Path, cam: Path, lamps: Path) -> dict:
     """:func:`extract_fit`, with a failure recorded (and the reason kept) instead of ending the study."""
     try:
         return extract_fit(capture, ref, cam, lamps)
-    except subprocess.CalledProcessError as e:
-        return {"failed": f"{e.cmd[3]} exited with {e.returncode} (its message is in the study's log)"}
+    except GlossrigFailed as e:
+        return {"failed": f"{e.verb} exited with {e.returncode} (its message is in the study's log)"}
 
 
 def capture_minutes(capture: Path) -> float:
     """The capture's simulated wall time (exposures + the per-shot overhead) from the manifest."""
     from datetime import datetime
 
-    ims = json.loads((capture / "capture.json").read_text())["images"]
-    t = sorted(datetime.fromisoformat(i["time"]) for i in ims)
-    last = max(ims, key=lambda i: datetime.fromisoformat(i["time"]))
+    ims = load_manifest(capture).images
+    t = sorted(datetime.fromisoformat(i.time) for i in ims)
+    last = max(ims, key=lambda i: datetime.fromisoformat(i.time))
     from glossrig.hardware.plan import THESIS_OVERHEAD_S
-    return ((t[-1] - t[0]).total_seconds() + last["exposure_s"] + THESIS_OVERHEAD_S) / 60.0
+    return ((t[-1] - t[0]).total_seconds() + last.exposure_s + THESIS_OVERHEAD_S) / 60.0
 
 
 def save(work: Path, key: str, entry) -> None:
@@ -146,19 +116,17 @@ def save(work: Path, key: str, entry) -> None:
         fcntl.flock(lock, fcntl.LOCK_EX)
         d = json.loads(p.read_text()) if p.exists() else {}
         d[key] = entry
-        tmp = p.with_suffix(".tmp")
-        tmp.write_text(json.dumps(d, indent=1))
-        tmp.replace(p)
+        atomic_write_text(p, json.dumps(d, indent=1))
 
 
 def run_exposures(a) -> None:
     work = Path(a.work) / "exposures"
     work.mkdir(parents=True, exist_ok=True)
-    ref = simulate(work / "reference", THESIS, "lambert:0.8", "middle", "0", 1, a.scale, REF_SEED)
+    ref = capture(work / "reference", "lambert:0.8", a.scale, REF_SEED, "0", 1, leds="middle", rig=THESIS)
     cam, lamps = truth_calibration(ref, work)
     for m in a.materials.split(","):
         for s in map(int, a.seeds.split(",")):
-            full = simulate(work / f"{m}_s{s}_full", THESIS, m, "middle", "0", 3, a.scale, s)
+            full = capture(work / f"{m}_s{s}_full", m, a.scale, s, "0", 3, leds="middle", rig=THESIS)
             res_full = try_extract_fit(full, ref, cam, lamps)
             plan, rep = planned_capture(work / f"{m}_s{s}_plan", THESIS, m, "middle", "0", a.scale, s)
             res_plan = try_extract_fit(plan, ref, cam, lamps)
@@ -239,7 +207,7 @@ def report(a) -> str:
             for which in ("full", "plan"):
                 e = v[which]
                 truth = Path(a.work) / "exposures" / f"{m}_s{s}_{which}" / "truth.json"
-                canvas = json.loads(truth.read_text()).get("supersample", "?") if truth.exists() else "?"
+                canvas = read_truth(truth).get("supersample", "?") if truth.exists() else "?"
                 lines.append(f"| {m} | {s} | {which} | {e['images']} | {e['minutes']:.1f} | {canvas} | "
                              + (" | ".join(fmt(k, e["error"][k]) for k in cols) if "error" in e else
                                 f"failed: {e['failed']} |" + " |" * (len(cols) - 1)) + " |")

@@ -4,7 +4,7 @@
 
 Calibration (first run, in WORK/calibration, unless --camera, --lamps and --reference
 name one of the nominal rig at scale 0.25): camera and lamps by
-validation/pipeline_study.py's ``calibrate`` (12 checkerboard views, seed 1; a
+``validation.common.calibrate`` (12 checkerboard views, seed 1; a
 transparency-sheet capture of LEDs 6 and 9, seed 2) and a lambert:0.8 reference capture
 (LEDs 6 and 9, rotation 0, seed 3), all ``--ideal`` like the trials; reused by every
 trial, the reference measured once. Set-up (first run): one null sample_2_6
@@ -30,19 +30,17 @@ import argparse
 import json
 import math
 import shutil
-import subprocess
-import sys
 import time
 from datetime import datetime
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
-from validation.pipeline_study import calibrate, simulate as simulate_capture
+from glossrig.core.capture import load_manifest, read_truth
+from glossrig.core.diagnose.report import read_report
+from validation.common import calibrate, capture
 from validation.provenance import code_version
 
-RIG = ROOT / "scenes/thesis_rig.toml"
 OUT = Path(__file__).parent / "blind_study.md"
 LEDS = (6, 9)
 ROWS, PIXELS, FIT_ROWS = 12_000, 3_000, 3_000
@@ -56,17 +54,10 @@ SIGNED = {"sample_radius_error", "sample_rotation_offset"}
 NULL_SEED = 5000      # independent null captures: seeds 5000 + j (trials use 1000 + k, the fit 999)
 
 
-def glossrig(*args):
-    subprocess.run([sys.executable, "-m", "glossrig.cli.main", *map(str, args)], check=True, capture_output=True)
-
-
 def simulate(out: Path, seed: int, effects: str | None = None):
-    if out.exists():
-        shutil.rmtree(out)
-    args = ["simulate", "--rig", RIG, "--material", "sample_2_6", "--leds", ",".join(map(str, LEDS)),
-            "--rotations", 0, "--repeats", 1, "--scale", 0.25, "--seed", seed, "--ideal", "--no-progress",
-            "--out", out]
-    glossrig(*args, *(["--effects", effects] if effects else []))
+    """A fresh sample_2_6 capture (LEDS, rotation 0, scale 0.25, --ideal), output captured."""
+    capture(out, "sample_2_6", 0.25, seed, "0", 1, leds=",".join(map(str, LEDS)),
+            extra=("--ideal", *(["--effects", effects] if effects else [])), mode="fresh", stdout=False, stderr=False)
 
 
 def calibration(work: Path, a) -> tuple[str, str, str]:
@@ -81,7 +72,7 @@ def calibration(work: Path, a) -> tuple[str, str, str]:
     out.mkdir(parents=True, exist_ok=True)
     leds = ",".join(map(str, LEDS))
     cam, lamps = calibrate(out, 0.25, 1, leds=leds, extra=("--ideal",))
-    ref = simulate_capture(out / "reference", "lambert:0.8", 0.25, 3, "0", 1, extra=("--ideal",), leds=leds)
+    ref = capture(out / "reference", "lambert:0.8", 0.25, 3, "0", 1, leds=leds, extra=("--ideal",))
     return str(cam), str(lamps), str(ref)
 
 
@@ -124,18 +115,18 @@ def true_magnitude(cause: str, value: float, cap: Path) -> float:
     """The hidden magnitude in the unit diagnose reports it in."""
     if cause == "black_level_offset":   # raw files hold integers: a rewrite adds round(value) DN
         return float(round(value))
-    t = json.loads((cap / "truth.json").read_text()) if (cap / "truth.json").exists() else {}
+    t = read_truth(cap) if (cap / "truth.json").exists() else {}
     if cause == "led_position_error":
         off = t["effects"]["detail"]["led_offset_mm"]
         return float(np.sqrt(np.mean([np.square(off[str(k)]) for k in LEDS])))
     if cause == "led_drift":   # largest |gain slope| (1/min) at the middle of an LED's sequence
         det = t["effects"]["detail"]
-        man = json.loads((cap / "capture.json").read_text())
+        man = load_manifest(cap)
         t0 = datetime.fromisoformat(t["clock_start"])
         out = []
         for k in LEDS:
-            ts = [(datetime.fromisoformat(im["time"]) - t0).total_seconds() for im in man["images"]
-                  if im["role"] == "sequence" and im["leds"] == [k]]
+            ts = [(datetime.fromisoformat(im.time) - t0).total_seconds() for im in man.images
+                  if im.role == "sequence" and im.leds == [k]]
             tm = 0.5 * (min(ts) + max(ts))
             P, ph = det["drift_period_s"][str(k)], det["drift_phase"][str(k)]
             out.append(abs(value * 2 * math.pi / P * 60 * math.cos(2 * math.pi * tm / P + ph)))
@@ -216,7 +207,7 @@ def gain_table(trials: list[dict], work: Path | None) -> list[str]:
     for t in trials:
         f = work / f"t{t['trial']:03d}_report" / "report.json"
         if f.exists():
-            reps[t["trial"]] = {c["name"]: c for c in json.loads(f.read_text())["causes"]}
+            reps[t["trial"]] = {c["name"]: c for c in read_report(f)["causes"]}
     if not reps:
         return []
     for t in trials:

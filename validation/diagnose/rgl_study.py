@@ -25,13 +25,12 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
 from glossrig.core.capture import capture_complete
-from validation.paths import rgl_dir
-from validation.pipeline_study import calibrate, simulate   # one way to script the chain
+from glossrig.core.diagnose.report import read_report
+from validation.common import GlossrigFailed, calibrate, capture, extract, fit, glossrig
+from validation.paths import ROOT, rgl_dir
 from validation.provenance import code_version, describe, record
 
 RGL = rgl_dir()
@@ -40,7 +39,7 @@ REFERENCE = RGL / "paper_white_rgb.bsdf"
 
 
 def calibrations(work: Path, a) -> tuple[Path, Path]:
-    """The given camera and lamp calibrations (copied into WORK), else pipeline_study's."""
+    """The given camera and lamp calibrations (copied into WORK), else validation.common's."""
     for given, name in ((a.camera, "camera.json"), (a.lamps, "lamps.json")):
         if given and not (work / name).exists():
             shutil.copy(given, work / name)
@@ -50,26 +49,25 @@ def calibrations(work: Path, a) -> tuple[Path, Path]:
 def captures(work: Path, a) -> dict:
     """Reference and sample captures, then extract / fit / diagnose per material."""
     cam, lamps = calibrations(work, a)
-    ref = simulate(work / "reference", f"measured:{REFERENCE}", a.scale, 3, a.rotations, 1)
+    ref = capture(work / "reference", f"measured:{REFERENCE}", a.scale, 3, a.rotations, 1)
     out = {}
     for k, m in enumerate(a.materials.split(",")):
         prov = work / "provenance.json"
         made = not capture_complete(work / m)
-        cap = simulate(work / m, f"measured:{RGL / (m + '.bsdf')}", a.scale, 10 + k, a.rotations, 1)
+        cap = capture(work / m, f"measured:{RGL / (m + '.bsdf')}", a.scale, 10 + k, a.rotations, 1)
         if made:
             record(prov, f"{m}/capture")
         sp, fj, dg = work / f"{m}.parquet", work / f"{m}.fit.json", work / f"{m}.diagnose"
         out[m] = {"capture": str(cap), "samples": str(sp), "fit": str(fj), "diagnose": str(dg)}
         err = None
         if not sp.exists():
-            err = _stage("extract", cap, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", sp,
-                         "--no-progress")
+            err = _stage(extract, cap, ref, cam, lamps, sp)
             record(prov, f"{m}/extract")
         if err is None and not fj.exists():
-            err = _stage("fit", sp, "--out", fj)
+            err = _stage(fit, sp, fj)
             record(prov, f"{m}/fit")
         if err is None and a.diagnose and not (dg / "report.json").exists():
-            err = _stage("diagnose", cap, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", dg,
+            err = _stage(glossrig, "diagnose", cap, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", dg,
                          "--reference-brdf", REFERENCE, "--no-progress")
             record(prov, f"{m}/diagnose")
         if err:
@@ -78,15 +76,14 @@ def captures(work: Path, a) -> dict:
     return out
 
 
-def _stage(*args) -> str | None:
-    """Run one glossrig stage; its last error line when it fails (the study goes on)."""
-    import subprocess
-
-    r = subprocess.run([sys.executable, "-m", "glossrig.cli.main", *map(str, args)], capture_output=True, text=True)
-    if r.returncode == 0:
-        return None
-    lines = [x for x in r.stderr.strip().splitlines() if x.strip()]
-    return f"glossrig {args[0]} failed (exit {r.returncode}): {lines[-1] if lines else ''}"
+def _stage(step, *args) -> str | None:
+    """Run one glossrig stage (a validation.common step, output captured); its verb, exit
+    status and last error line when it fails (the study goes on)."""
+    try:
+        step(*args, stdout=False, stderr=False)
+    except GlossrigFailed as e:
+        return e.summary
+    return None
 
 ALBEDO = 0.8                              # the thesis's reference albedo (eq. 4.78)
 FRESNEL_GRID = (1.2, 1.3, 1.4, 1.5, 1.7, 2.0, 2.5, 3.0)
@@ -114,7 +111,7 @@ def errors(pred, y, a) -> dict:
     the lobe subset is theta_h < 10 deg."""
     import numpy as np
 
-    ok = y > FLOOR
+    ok = (y > FLOOR) & np.isfinite(pred)        # NaN: a channel missing in the sample (core/samples.py)
     rel = pred[ok] / y[ok] - 1
     lobe = (a["theta_h"][ok] < np.radians(10))
     return {"median_abs_rel": float(np.median(np.abs(rel))), "p90_abs_rel": float(np.percentile(np.abs(rel), 90)),
@@ -159,7 +156,8 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
                     stderr={k: wf.get(k + "_stderr") for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")})
     out["reference"] = score(w_ref)
     rng = np.random.default_rng(0)
-    idx = np.sort(rng.choice(len(t), min(a.fit_rows, len(t)), replace=False))
+    rows = np.flatnonzero(np.isfinite(y0) & np.isfinite(y1))      # luminance needs every channel
+    idx = np.sort(rng.choice(rows, min(a.fit_rows, rows.size), replace=False))
     As = {k: v[idx] for k, v in A.items()}
     W = fit_weights(t)[idx]
     start = (w_ref.alpha_x, w_ref.alpha_y, w_ref.lobe_rotation)
@@ -188,7 +186,7 @@ def diagnose_summary(run: dict) -> dict | None:
     dg = Path(run["diagnose"]) / "report.json"
     if not dg.exists():
         return None
-    rep = json.loads(dg.read_text())
+    rep = read_report(dg)
     return {"verdict": rep["verdict"], "base_error": rep["base_error"],
             "causes": [{k: c.get(k) for k in ("name", "gain", "significant", "identifiable", "params", "stderr",
                                               "note")} for c in rep["causes"]]}

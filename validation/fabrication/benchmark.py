@@ -1,7 +1,7 @@
 """Benchmark (issue 6): ``glossrig fabricate`` for a 100 mm x 100 mm print at the thesis
 resolution (cells of 103.7 um, lines 90 um apart) against a 10 mm x 10 mm one.
 
-    .venv/bin/python validation/fabrication/benchmark.py [--repeats N]
+    .venv/bin/python -m validation.fabrication.benchmark [--repeats N]
 
 Input: the centre square of the photograph that ships with matplotlib (Grace Hopper),
 as grey. Timed in-process: ``fabricate`` (read, halftone, vectorise, lay out, order,
@@ -17,7 +17,6 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -27,6 +26,7 @@ import matplotlib
 from PIL import Image
 
 from glossrig.core.fabrication import fabricate, plan
+from validation.common import glossrig
 
 HERE = Path(__file__).resolve().parent
 PHOTO = Path(matplotlib.get_data_path()) / "sample_data" / "grace_hopper.jpg"
@@ -63,9 +63,8 @@ def main() -> int:
             bare, _ = _median_time(lambda width=width: plan(square, width, previews=False), args.repeats)
             p = plan(square, width, previews=False)
             t = time.perf_counter()
-            subprocess.run([sys.executable, "-m", "glossrig.cli.main", "fabricate", str(square),
-                            "--width-mm", str(width), "--out", str(tmp / f"cli{width:g}")], check=True,
-                           capture_output=True)
+            glossrig("fabricate", square, "--width-mm", width, "--out", tmp / f"cli{width:g}", stdout=False,
+                     stderr=False)
             cli = time.perf_counter() - t
             results["sizes"][f"{width:g}mm"] = {
                 "print_size_mm": p.summary["print_size_mm"], "grid": p.summary["grid"],

@@ -2,7 +2,7 @@
 18-exposure sequence at scales 0.25 and 1.0, and peak memory of a full-scale capture of
 one LED (calibration image + one 18-exposure sequence).
 
-    python validation/twin/benchmark.py [--repeats 3] [--out validation/twin/benchmark.md]
+    python -m validation.twin.benchmark [--repeats 3] [--out validation/twin/benchmark.md]
 
 Times are medians over ``--repeats`` runs in this process (first-render JIT compilation
 is reported separately); the full-scale capture runs `glossrig simulate` in a child
@@ -13,14 +13,12 @@ from __future__ import annotations
 import argparse
 import resource
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-
-ROOT = Path(__file__).resolve().parents[2]
+from validation.common import capture
+from validation.paths import RIG, ROOT
 
 
 def bench_scale(scale: float, repeats: int) -> dict:
@@ -29,7 +27,7 @@ def bench_scale(scale: float, repeats: int) -> dict:
     from glossrig.twin.sensor import frame_rng
     from glossrig.twin.virtual_rig import VirtualRig
 
-    rig = load_rig(ROOT / "scenes/thesis_rig.toml")
+    rig = load_rig(RIG)
     t0 = time.perf_counter()
     vr = VirtualRig(rig, parse_material("sample_2_6"), scale=scale, seed=0)
     setup = time.perf_counter() - t0
@@ -53,11 +51,8 @@ def bench_scale(scale: float, repeats: int) -> dict:
 
 def full_capture_memory() -> dict:
     with tempfile.TemporaryDirectory() as d:
-        cmd = [sys.executable, "-m", "glossrig.cli.main", "simulate", "--rig", str(ROOT / "scenes/thesis_rig.toml"),
-               "--material", "sample_2_6", "--leds", "9", "--rotations", "0", "--repeats", "1", "--scale", "1.0",
-               "--seed", "0", "--no-progress", "--out", str(Path(d) / "cap")]
         t0 = time.perf_counter()
-        subprocess.run(cmd, check=True, capture_output=True)
+        capture(Path(d) / "cap", "sample_2_6", 1.0, 0, "0", 1, leds="9", mode="fresh", stdout=False, stderr=False)
         wall = time.perf_counter() - t0
         peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
         n = len(list((Path(d) / "cap").glob("*.dng")))
@@ -74,7 +69,7 @@ def main() -> None:
     rows = [bench_scale(s, a.repeats) for s in (0.25, 1.0)]
     mem = full_capture_memory()
     lines = ["# Virtual rig benchmark", "",
-             f"Command: `python validation/twin/benchmark.py --repeats {a.repeats}`; Mitsuba variant "
+             f"Command: `python -m validation.twin.benchmark --repeats {a.repeats}`; Mitsuba variant "
              f"`{choose_variant()}`, 4 spp, box filter, one LED, material sample_2_6. Medians of {a.repeats} runs.", "",
              "| scale | image | scene set-up (s) | first render incl. JIT (s) | render, one LED (s) | 18-exposure sequence from it (s) |",
              "|---|---|---|---|---|---|"]

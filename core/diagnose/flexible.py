@@ -1,0 +1,173 @@
+"""Material before instrument (issue 14, item 3): a flexible material model that must fail
+to explain the residual before an instrument cause may be named.
+
+The model: the fit's Ward lobe plus a smooth, non-parametric isotropic BRDF in the half /
+difference angles (Rusinkiewicz 1998) - a low-order tensor product: piecewise-linear hat
+functions in theta_h, knots at quantiles of the training rows' theta_h (clamped
+beyond them) times a polynomial of degree one in theta_d (clamped to the training range) -
+
+    y = rho_d / pi + rho_s L(angles) + sum_j (b_j + c_j theta_d') B_j(theta_h)
+
+(the theta_d factor is off by default, :data:`THETA_D_TERM`: the material's departure is then
+taken as a function of theta_h alone, shared by all LEDs),
+
+all coefficients linear (a small ridge on b, c settles what the training rows leave open:
+with one LED per fold theta_d barely varies and c stays ~0), fitted on the training folds (leave one LED out, as every
+BRDF-space cause) and scored on the held-out ones. Any isotropic material whose BRDF
+departs smoothly from Ward (a grazing rise, a non-Lambertian diffuse term, wider tails)
+is within its reach; what it cannot produce is a dependence on where the row sits in
+the image or on the cylinder, on which LED lit it beyond its angles, or on the exposure.
+
+Rule (:func:`material_first`): an instrument cause of BRDF space (stray light,
+vignetting, LED emission and position, sample radius and rotation) may be named only if
+its pooled held-out error is lower than the flexible model's by more than its own
+threshold: it must win through a signature no material produces. Otherwise it is
+``blocked_by`` the flexible model. A significant flexible model is reported as the
+material cause ``flexible_material`` naming the variable its departure follows
+(:func:`describe`), e.g. "rises toward grazing theta_in".
+"""
+from __future__ import annotations
+
+import numpy as np
+
+N_KNOTS_H = 6           # hat functions along theta_h
+#: the theta_d factor (degree one). Off: leaving one LED out, the held-out LED's theta_d lies outside
+#: the training LEDs' range (two-LED captures: entirely), the term extrapolates and lost 7-13 %
+#: held-out on an ideal twin capture (sample_2_6, LEDs 6 and 9), against -0.1 % without it
+THETA_D_TERM = False
+RIDGE = 1e-4            # ridge on the flexible columns, relative to their mean normal-equation diagonal
+DESCRIBE_VARS = ("theta_in", "theta_out", "theta_h", "theta_d")
+
+
+def hat_basis(x, knots) -> np.ndarray:
+    """(n, K) piecewise-linear hat functions on ``knots`` (partition of unity; clamped outside)."""
+    x = np.clip(np.asarray(x, float), knots[0], knots[-1])
+    B = np.zeros((len(x), len(knots)))
+    for k in range(len(knots)):
+        if k > 0:
+            lo, c = knots[k - 1], knots[k]
+            s = (x >= lo) & (x <= c)
+            B[s, k] = (x[s] - lo) / (c - lo)
+        if k < len(knots) - 1:
+            c, hi = knots[k], knots[k + 1]
+            s = (x >= c) & (x <= hi)
+            B[s, k] = (hi - x[s]) / (hi - c)
+    return B
+
+
+def _knots(x, n) -> np.ndarray:
+    k = np.unique(np.quantile(x, np.linspace(0, 1, n)))
+    return k if len(k) >= 2 else np.array([k[0], k[0] + 1e-3])
+
+
+def flexible_basis(theta_h, theta_d, train=None) -> np.ndarray:
+    """(n, K) columns of the smooth isotropic correction (BRDF units / pi), knots at quantiles
+    of the ``train`` rows' angles and every row clamped into their range (a held-out LED
+    beyond the training angles gets the edge value: constant extrapolation)."""
+    train = np.ones(len(theta_h), bool) if train is None else train
+    Bh = hat_basis(theta_h, _knots(np.asarray(theta_h)[train], N_KNOTS_H))
+    if not THETA_D_TERM:
+        return Bh / np.pi
+    td = np.asarray(theta_d, float)
+    lo, hi = np.min(td[train]), np.max(td[train])
+    x = (np.clip(td, lo, hi) - 0.5 * (lo + hi)) / max(hi - lo, 1e-3)        # in [-1/2, 1/2] on the training rows
+    return np.concatenate([Bh, Bh * x[:, None]], axis=1) / np.pi
+
+
+def fit_flexible(m, train, ridge: float = RIDGE):
+    """Weighted least squares of y on the Ward columns [1/pi, L] (free) and the flexible
+    columns (ridge ``ridge`` times their mean diagonal: it only settles the directions the
+    training rows leave undetermined - the flexible columns sum to the constant of rho_d,
+    which thus stays with rho_d). Returns (coefficients, prediction for all rows)."""
+    c = m.cols
+    B = flexible_basis(c["theta_h"], c["theta_d"], train)
+    X = np.column_stack([np.full_like(c["L"], 1 / np.pi), c["L"], B])
+    sig = c["sigma"]
+    A = X[train] / sig[train, None]
+    b = c["y"][train] / sig[train]
+    AtA = A.T @ A
+    d = np.zeros(X.shape[1])
+    d[2:] = ridge * max(float(np.mean(np.diag(AtA)[2:])), 1e-30)
+    coef = np.linalg.solve(AtA + np.diag(d) + 1e-12 * np.eye(len(d)) * np.trace(AtA) / len(d), A.T @ b)
+    return coef, X @ coef
+
+
+def describe(delta, cols: dict) -> dict:
+    """Which angle the relative departure ``delta`` (flexible / base - 1) follows: the variable
+    whose 10 quantile-bin means explain most of its variance, with the direction."""
+    best = None
+    ok = np.isfinite(delta)
+    for v in DESCRIBE_VARS:
+        x = np.degrees(np.asarray(cols[v], float))[ok]
+        d = delta[ok]
+        edges = np.unique(np.quantile(x, np.linspace(0, 1, 11)))
+        idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
+        means = np.array([d[idx == k].mean() if np.any(idx == k) else np.nan for k in range(len(edges) - 1)])
+        fitted = means[idx]
+        r2 = 1 - np.nanvar(d - fitted) / max(np.var(d), 1e-30)
+        centres = 0.5 * (edges[1:] + edges[:-1])
+        g = np.isfinite(means)
+        slope = np.polyfit(centres[g], means[g], 1)[0] if g.sum() >= 2 else 0.0
+        if best is None or r2 > best["r2"]:
+            best = {"variable": v, "r2": float(r2), "direction": "rises" if slope > 0 else "falls",
+                    "effect": float(np.nanmax(means) - np.nanmin(means)),
+                    "profile": {"x_deg": centres.tolist(), "relative_departure": means.tolist()}}
+    assert best is not None
+    v = str(best["variable"])
+    where = {"theta_in": "grazing theta_in", "theta_out": "grazing theta_out",
+             "theta_h": "large theta_h (away from the specular peak)", "theta_d": "large theta_d"}[v]
+    best["description"] = f"{best['direction']} toward {where}"
+    return best
+
+
+def flexible_cause(m):
+    """The flexible material model as a catalogue cause (kind "material")."""
+    from glossrig.core.diagnose.catalogue import CauseResult, chi2
+
+    c = m.cols
+    one = np.full_like(c["L"], 1 / np.pi)
+    base = [one, c["L"]]
+    e0s = e1s = 0.0
+    gains, n = [], 0
+    for train, test in m.folds():
+        _, p0, _ = m.solve_linear(base, train)
+        _, p1 = fit_flexible(m, train)
+        e0, e1 = chi2((c["y"] - p0)[test], c["sigma"][test]), chi2((c["y"] - p1)[test], c["sigma"][test])
+        e0s, e1s, n = e0s + e0 * test.sum(), e1s + e1 * test.sum(), n + test.sum()
+        gains.append((e0 - e1) / e0)
+    allr = np.ones(len(c["y"]), bool)
+    _, pb, _ = m.solve_linear(base, allr)
+    coef, pf = fit_flexible(m, allr)
+    # the variable the departure follows, read from the data (the measured value over the base
+    # model's), not from the flexible model, which is a function of theta_h by construction
+    delta = c["y"] / np.maximum(pb, 1e-9) - 1
+    desc = describe(delta, c)
+    doc = ("Flexible material: the Ward lobe plus a smooth non-parametric isotropic BRDF in the half/difference "
+           "angles (tensor-product hat functions in theta_h and theta_d, fitted on the training LEDs). It stands "
+           "for every smooth material departure from Ward; an instrument cause must beat it on held-out LEDs.")
+    params = {"follows": desc["variable"], "description": desc["description"], "effect": desc["effect"],
+              "profile": desc["profile"], "rho_d": float(coef[0]), "rho_s": float(coef[1]),
+              "unit": "relative departure from the Ward fit"}
+    r = CauseResult("flexible_material", "brdf", doc, params, {}, e1s / n, e0s / n, gains, len(coef) - 2,
+                    magnitude=desc["effect"])
+    r.note = f"material departure {desc['description']} (by {desc['effect']:.1%})"
+    m.flexible_prediction = pf
+    return r
+
+
+def material_first(causes) -> None:
+    """Block each BRDF-space instrument cause that does not beat the flexible material model
+    on held-out folds by more than its own threshold (sets ``blocked_by`` and a note)."""
+    flex = next((c for c in causes if c.name == "flexible_material"), None)
+    if flex is None:
+        return
+    for c in causes:
+        if c.kind != "instrument" or c.space != "brdf":
+            continue
+        c.vs_material = (flex.error - c.error) / flex.error if flex.error > 0 else 0.0
+        if not c.vs_material > c.threshold:
+            c.blocked_by = "flexible_material"
+            if c.significant:
+                c.note = (c.note + "; " if c.note else "") + (
+                    f"a smooth material departure explains as much (held-out error {c.error:.4g} vs the flexible "
+                    f"material model's {flex.error:.4g}): not named as an instrument fault")

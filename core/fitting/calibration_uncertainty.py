@@ -1,0 +1,417 @@
+"""The calibration component of the fit's uncertainty budget (GUM Supplement 1, Monte Carlo).
+
+Every calibration stage states its uncertainty in the file it writes:
+
+* camera intrinsics - camera.json's ``std`` (OpenCV's ``stdDeviationsIntrinsics``:
+  fx, fy, cx, cy and the distortion coefficients);
+* holder and cylinder poses - ``edge_fit.std_rot_deg`` / ``std_t_mm`` of
+  :func:`glossrig.core.calibration.poses.calibrate_capture` (Gauss-Newton, noise only);
+* lamp positions - lamps.json's ``std_mm`` (per LED, per holder axis; a file without it
+  gets :data:`LAMP_STD_MM`, see :func:`lamp_std`);
+* reference albedo - a relative standard uncertainty of its level
+  (:data:`ALBEDO_U_REL`) and of its angular variation (:data:`ALBEDO_ANGULAR_U_REL`).
+
+Propagation (GUM-S1, Monte Carlo over calibration draws): each draw perturbs the
+calibration within its stated uncertainty (independent normal draws) and recomputes,
+for the existing samples, what changes:
+
+* the **angles**: the samples table keeps each row's pixel (``u, v``: the Bayer block's
+  corner, its centre at ``u + 0.5, v + 0.5``), LED and rotation, so each row's ray is
+  cast again through the perturbed intrinsics and poses, intersected with the cylinder
+  and its angles recomputed towards the perturbed lamp (the code of
+  :mod:`glossrig.core.extraction.cylinder`). The poses of each rotation are solved once
+  from the capture's calibration image (the capture named in the table's provenance).
+  A perturbed intrinsic matrix is not applied with the poses held: the poses are solved
+  with the intrinsics, and an error of the principal point or focal length is largely
+  absorbed by them (a 5 px principal-point error held against fixed poses would move
+  the surface point by ~1.5 mm, its normal by degrees). Each draw therefore re-solves
+  the corner PnP of both markers with the perturbed intrinsics (the corners the
+  calibration found) and applies the change of the PnP pose to the refined pose.
+  The distortion coefficients are not drawn: camera.json holds their standard
+  deviations but not their (strong) correlations, and independent draws of k1, k2, k3
+  would give distortions no calibration could produce.
+* the **values**: a sample's value is the sample capture's over the reference
+  capture's at the same pixel, LED and rotation (eq. 4.78), so the irradiance factors
+  that depend on the lamp position and geometry (1/r^2, cos theta_in) cancel; what
+  stays is the reference's albedo, a common scale ``(1 + e)``, ``e ~ N(0, u_albedo)``,
+  and its departure from a Lambertian reflector, drawn as the multiplier
+  ``1 + h_i (1 - cos theta_in - m_i) + h_o (1 - cos theta_out - m_o)`` with
+  ``h ~ N(0, u_angular)`` (``m`` the means over the rows: the level is the albedo's).
+* the **refit**: the point model (eq. 4.79) is refitted by least squares, warm-started
+  from the nominal fit's parameters, on a subsample of rows (``max_rows``), for
+  luminance and each colour channel; the same refit on the nominal geometry is the
+  reference, so the footprint model, clipping choices and the subsample's own bias
+  cancel in the difference. The weights of eq. 4.82 are recomputed from the perturbed
+  angles.
+
+The component's standard uncertainty of each parameter is the standard deviation of
+the refitted parameters over the draws (rotation differences taken modulo pi), with
+``n_draws - 1`` degrees of freedom. Approximations: the re-extraction is not redone
+(the reference is matched at the same pixel, not at the nearest geometry; a
+perturbed ray that leaves the sample drops that row for that draw); the poses' stated
+uncertainty counts their noise only; 16-32 draws estimate a standard deviation to
+~15-18 % (GUM-S1 7.9 asks for more where the tails matter; the budget's
+Welch-Satterthwaite degrees of freedom carry it).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from glossrig.core.calibration.lamps import LAMP_STD_MM as _LAMP_STD_MM
+from glossrig.core.errors import InputError
+
+PARAM_NAMES = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
+SOURCES = ("intrinsics", "poses", "lamps", "albedo")
+#: Per holder axis standard uncertainty (mm) of a lamp position whose file states none
+#: (what :func:`glossrig.core.calibration.lamps.calibrate_lamps` states, 0.5 mm).
+LAMP_STD_MM = _LAMP_STD_MM
+#: Relative standard uncertainty of the white reference's albedo (type B: the thesis assumes
+#: 0.8 for white paper, spec/rig-facts.toml [reference]; a paper's albedo is known to a few per cent).
+ALBEDO_U_REL = 0.02
+#: Relative standard uncertainty of the reference's angular variation (departure from a
+#: Lambertian reflector per unit of ``1 - cos theta``; type B).
+ALBEDO_ANGULAR_U_REL = 0.02
+
+
+def lamp_std(doc: dict) -> dict[int, np.ndarray]:
+    """Per-LED standard uncertainty (mm, holder axes) of a lamp file's positions: its
+    ``std_mm`` where it states one, else :data:`LAMP_STD_MM` (files written before the
+    key existed)."""
+    out = {}
+    std = doc.get("std_mm") or {}
+    for k in (doc.get("lamps_mm") or {}):
+        s = std.get(k)
+        a = np.full(3, LAMP_STD_MM) if s is None else np.broadcast_to(np.asarray(s, float), (3,)).copy()
+        out[int(k)] = a
+    return out
+
+
+@dataclass
+class CalibrationInputs:
+    """The nominal calibration and its stated uncertainties (module docstring)."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    size: tuple[int, int]
+    std_K: dict                          # fx, fy, cx, cy -> standard deviation (px)
+    lamps: dict[int, np.ndarray]
+    lamps_std: dict[int, np.ndarray]
+    radius: float
+    height: float
+    poses: dict = field(default_factory=dict)     # rotation -> dict (see rotation_poses)
+    albedo_u: float = ALBEDO_U_REL
+    angular_u: float = ALBEDO_ANGULAR_U_REL
+    sources_files: dict = field(default_factory=dict)
+
+
+def rotation_poses(res: dict, rig) -> dict:
+    """What a draw needs of one rotation's :func:`~glossrig.core.calibration.poses.calibrate_capture`
+    result: refined and corner-PnP poses with their corners and stated std."""
+    from glossrig.core.calibration.markers import cylinder_marker_corners, holder_marker_corners
+
+    def part(key):
+        e = res[key]
+        ef = e.get("edge_fit") or {}
+        return {"R": np.asarray(e["R"], float), "t": np.asarray(e["t_mm"], float),
+                "R_pnp": np.asarray(e["corner_pnp"]["R"], float), "t_pnp": np.asarray(e["corner_pnp"]["t_mm"], float),
+                "std_rot_deg": np.nan_to_num(np.asarray(ef.get("std_rot_deg", [0, 0, 0]), float)),
+                "std_t_mm": np.nan_to_num(np.asarray(ef.get("std_t_mm", [0, 0, 0]), float))}
+
+    h, c = part("holder"), part("cylinder")
+    h["obj"] = np.concatenate([holder_marker_corners(rig), holder_marker_corners(rig, inner=True)])
+    h["img"] = np.asarray(res["corners_px"]["holder"], float)
+    h["planar"] = True
+    c["obj"] = cylinder_marker_corners(rig)
+    c["img"] = np.asarray(res["corners_px"]["cylinder"], float)
+    c["planar"] = False
+    return {"holder": h, "cylinder": c}
+
+
+def load_inputs(camera_json, lamps_json, capture_dir, rotations) -> CalibrationInputs:
+    """The calibration of a samples table: intrinsics, lamps, and each rotation's poses
+    solved again from ``capture_dir``'s calibration images (seconds per rotation)."""
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.calibration.lamps import load_lamps
+    from glossrig.core.calibration.poses import calibrate_capture
+    from glossrig.core.capture import load_manifest
+    from glossrig.core.rig import load_rig
+    from glossrig.core.toml_input import read_json
+
+    cam = load_camera(camera_json)
+    std = cam.meta.get("std") if isinstance(cam.meta, dict) else None
+    if not std:
+        std = (read_json(Path(camera_json), "camera calibration").get("std") or {})
+    lamps = load_lamps(lamps_json)
+    ldoc = read_json(Path(lamps_json), "lamp file")
+    man = load_manifest(capture_dir)
+    rig = load_rig(man.rig_path())
+    poses = {}
+    for rot in rotations:
+        res = calibrate_capture(capture_dir, camera_json, rotation=float(rot))
+        poses[float(rot)] = rotation_poses(res, rig)
+    return CalibrationInputs(K=cam.K, dist=cam.dist, size=(int(cam.image_size[0]), int(cam.image_size[1])),
+                             std_K={k: float(std.get(k, 0.0) or 0.0) for k in ("fx", "fy", "cx", "cy")},
+                             lamps=lamps, lamps_std=lamp_std(ldoc), radius=rig.cylinder_radius,
+                             height=rig.sample_height, poses=poses,
+                             sources_files={"camera": str(camera_json), "lamps": str(lamps_json),
+                                            "capture": str(capture_dir)})
+
+
+def _small_rotation(w: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.Rodrigues(np.asarray(w, float).reshape(3, 1))[0]
+
+
+def _draw_pose(p: dict, K0, K, dist, rng, poses_on: bool, intr_on: bool):
+    """One draw of a pose (camera frame): the refined pose, moved by the change of the
+    corner PnP under the drawn intrinsics and by its own stated noise."""
+    import cv2
+
+    R, t = p["R"].copy(), p["t"].copy()
+    if intr_on:
+        flag = cv2.SOLVEPNP_ITERATIVE
+        rv0 = cv2.Rodrigues(p["R_pnp"])[0]
+        ok, rv, tv = cv2.solvePnP(p["obj"].astype(np.float64), p["img"].astype(np.float64), K, dist,
+                                  rvec=rv0.copy(), tvec=p["t_pnp"].reshape(3, 1).copy(),
+                                  useExtrinsicGuess=True, flags=flag)
+        if ok:
+            Rn = cv2.Rodrigues(rv)[0]
+            R = Rn @ p["R_pnp"].T @ R
+            t = t + (tv.ravel() - p["t_pnp"])
+    if poses_on:
+        w = np.radians(p["std_rot_deg"]) * rng.standard_normal(3)
+        R = R @ _small_rotation(w)                 # about the marker's own axes (poses.refine_pose_edges)
+        t = t + p["std_t_mm"] * rng.standard_normal(3)
+    return R, t
+
+
+def row_angles(cal: CalibrationInputs, u, v, led, rotation, *, K=None, poses=None, lamps=None):
+    """The BRDF angles (dict of arrays, with ``cos_in``, ``cos_out``, ``valid``) of the
+    rows at block centres ``(u + 0.5, v + 0.5)``, recomputed from a calibration
+    (default: the nominal one): ``poses`` rotation -> ((R_hold, t_hold), (R_cyl, t_cyl))
+    in the camera frame."""
+    from glossrig.core.calibration.poses import relative_to_holder
+    from glossrig.core.extraction.cylinder import SurfaceSamples, intersect_cylinder, sample_angles, undistorted_rays
+    from glossrig.core.models.angles import ANGLE_COLUMNS, normalize
+
+    K = cal.K if K is None else K
+    lamps = cal.lamps if lamps is None else lamps
+    n = len(u)
+    out = {k: np.full(n, np.nan) for k in (*ANGLE_COLUMNS, "cos_in", "cos_out")}
+    valid = np.zeros(n, bool)
+    for rot in np.unique(rotation):
+        rp = cal.poses.get(float(rot))
+        if rp is None:
+            raise InputError(f"no poses for rotation {rot:g} deg")
+        if poses is not None and float(rot) in poses:
+            (Rh, th), (Rc, tc) = poses[float(rot)]
+        else:
+            Rh, th, Rc, tc = rp["holder"]["R"], rp["holder"]["t"], rp["cylinder"]["R"], rp["cylinder"]["t"]
+        R_cyl, t_cyl = relative_to_holder(Rh, th, Rc, tc)
+        sel = np.flatnonzero(rotation == rot)
+        d_cam = undistorted_rays(K, cal.dist, u[sel] + 0.5, v[sel] + 0.5)
+        C = -Rh.T @ th
+        o_cyl = R_cyl.T @ (C - t_cyl)
+        p_cyl, ok = intersect_cylinder(o_cyl, (d_cam @ Rh) @ R_cyl, cal.radius, -cal.height / 2, cal.height / 2)
+        pts = p_cyl @ R_cyl.T + t_cyl
+        nrm = normalize(p_cyl * np.array([1.0, 0.0, 1.0])) @ R_cyl.T
+        s = SurfaceSamples(u=u[sel], v=v[sel], points=pts, normals=nrm, camera_centre=C,
+                           axis=R_cyl @ np.array([0.0, 1.0, 0.0]))
+        for L in np.unique(led[sel]):
+            m = led[sel] == L
+            if int(L) not in lamps:
+                raise InputError(f"the lamp file has no LED {int(L)}")
+            sub = SurfaceSamples(u=s.u[m], v=s.v[m], points=s.points[m], normals=s.normals[m],
+                                 camera_centre=C, axis=s.axis)
+            ang = sample_angles(sub, lamps[int(L)], float(rot))
+            idx = sel[m]
+            for k in out:
+                out[k][idx] = ang[k]
+            valid[idx] = ok[m]
+    out["valid"] = valid & (out["cos_in"] > 0) & (out["cos_out"] > 0)
+    return out
+
+
+def draw_calibration(cal: CalibrationInputs, rng, sources=SOURCES):
+    """One Monte Carlo draw: (K, poses, lamps, albedo scale, angular coefficients)."""
+    K = cal.K.copy()
+    intr = "intrinsics" in sources and any(cal.std_K.values())
+    if intr:
+        K[0, 0] += cal.std_K["fx"] * rng.standard_normal()
+        K[1, 1] += cal.std_K["fy"] * rng.standard_normal()
+        K[0, 2] += cal.std_K["cx"] * rng.standard_normal()
+        K[1, 2] += cal.std_K["cy"] * rng.standard_normal()
+    poses = {}
+    for rot, rp in cal.poses.items():
+        poses[rot] = tuple(_draw_pose(rp[k], cal.K, K, cal.dist, rng, "poses" in sources, intr)
+                           for k in ("holder", "cylinder"))
+    lamps = {k: (p + cal.lamps_std[k] * rng.standard_normal(3)) if "lamps" in sources else p
+             for k, p in cal.lamps.items()}
+    if "albedo" in sources:
+        scale = 1.0 + cal.albedo_u * rng.standard_normal()
+        hi, ho = cal.angular_u * rng.standard_normal(2)
+    else:
+        scale, hi, ho = 1.0, 0.0, 0.0
+    return K, poses, lamps, scale, (hi, ho)
+
+
+def _refit(ang, y, sw, x0, weighting, clip):
+    from scipy.optimize import least_squares
+
+    from glossrig.core.fitting.fit import ALPHA_MIN, peak_weight
+    from glossrig.core.models.ward import ALPHA_MAX, ward_geometry, ward_param_jacobian, ward_parts
+
+    W = np.sqrt(sw) * peak_weight(ang["theta_in"], ang["phi_in"], ang["theta_out"], ang["phi_out"],
+                                  ang.get("theta_d"), ang.get("phi_d"), mode=weighting)
+    geo = ward_geometry(ang["theta_in"], ang["theta_out"], ang["theta_h"], ang["phi_h"])
+    yc = y if clip is None else np.minimum(y, clip)
+
+    def fun(x):
+        f, _ = ward_parts(geo, x, log_alpha=True)
+        return W * ((f if clip is None else np.minimum(f, clip)) - yc)
+
+    def jac(x):
+        f, parts = ward_parts(geo, x, log_alpha=True)
+        J = ward_param_jacobian(geo, x, parts, log_alpha=True) * W[:, None]
+        if clip is not None:
+            J[f >= clip] = 0.0
+        return J
+
+    lb = [0.0, 0.0, math.log(ALPHA_MIN), math.log(ALPHA_MIN), -np.inf]
+    ub = [np.inf, np.inf, math.log(ALPHA_MAX), math.log(ALPHA_MAX), np.inf]
+    res = least_squares(fun, x0, jac=jac, bounds=(lb, ub), method="trf", x_scale="jac", ftol=1e-10,
+                        xtol=1e-10, gtol=1e-10, max_nfev=30)
+    return res.x
+
+
+def _reported(x, x_ref) -> np.ndarray:
+    """Solver vector -> reported (rho_d, rho_s, alpha_x, alpha_y, rot) with the rotation
+    taken to within pi/2 of the reference's."""
+    rot = x[4] + ((x_ref[4] - x[4] + math.pi / 2) // math.pi) * math.pi
+    return np.array([x[0], x[1], math.exp(x[2]), math.exp(x[3]), rot])
+
+
+def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: int = 24, max_rows: int = 20_000,
+                          seed: int = 0, weighting: str = "mirror", clip: float | None = None,
+                          use_weight_column: bool = True, sources=SOURCES) -> dict:
+    """The calibration component (module docstring): ``{channel: {param: {"u": u, "dof":
+    n_draws - 1}}}`` for the channels of ``fits`` (channel -> WardFit or WardParams, in
+    canonical form), plus ``"_meta"`` (draws, rows, sources, shift samples). ``df``: the
+    samples table (``u, v, led, rotation``, angles, ``r, g, b``, optionally ``weight``)."""
+    from glossrig.core.fitting.fit import channel_values
+    from glossrig.core.models.ward import WardParams
+
+    need = ("u", "v", "led", "rotation")
+    missing = [c for c in need if c not in df]
+    if missing:
+        raise InputError(f"calibration uncertainty: the samples table lacks {', '.join(missing)}")
+    if n_draws < 2:
+        raise InputError(f"calibration uncertainty needs at least 2 draws, got {n_draws}")
+    rng = np.random.default_rng(seed)
+    sw_all = np.asarray(df["weight"], float) if (use_weight_column and "weight" in df) else np.ones(len(df))
+    rows = np.flatnonzero(sw_all > 0)
+    if rows.size > max_rows:
+        rows = np.sort(rng.choice(rows, max_rows, replace=False))
+    sub = df.iloc[rows]
+    u, v = sub["u"].to_numpy(float), sub["v"].to_numpy(float)
+    led, rot = sub["led"].to_numpy(), sub["rotation"].to_numpy(float)
+    sw = sw_all[rows]
+    ys = {c: channel_values(sub, c) for c in fits}
+    # a channel missing in a row (NaN, glossrig.core.samples) leaves that row out of its refits
+    fin = {c: np.isfinite(y) for c, y in ys.items()}
+    x0 = {}
+    for c, f in fits.items():
+        p = f if isinstance(f, WardParams) else f.params
+        x0[c] = np.array([p.rho_d, p.rho_s, math.log(p.alpha_x), math.log(p.alpha_y), p.lobe_rotation])
+    nominal = row_angles(cal, u, v, led, rot)
+    ang_dev = _angle_check(nominal, sub)
+    ok0 = nominal["valid"]
+    base = {}
+    for c in fits:
+        okc = ok0 & fin[c]
+        xb = _refit(_take(nominal, okc), ys[c][okc], sw[okc], x0[c], weighting, clip)
+        base[c] = _reported(xb, x0[c])
+    shifts: dict[str, list] = {c: [] for c in fits}
+    for _ in range(n_draws):
+        K, poses, lamps, scale, (hi, ho) = draw_calibration(cal, rng, sources)
+        ang = row_angles(cal, u, v, led, rot, K=K, poses=poses, lamps=lamps)
+        ok = ang["valid"] & ok0
+        mult = scale
+        if hi or ho:
+            gi, go = 1 - ang["cos_in"][ok], 1 - ang["cos_out"][ok]
+            mult = scale * (1 + hi * (gi - gi.mean()) + ho * (go - go.mean()))
+        a = _take(ang, ok)
+        for c in fits:
+            if fin[c][ok].all():
+                x = _refit(a, ys[c][ok] * mult, sw[ok], x0[c], weighting, clip)
+            else:
+                keep = fin[c][ok]
+                x = _refit({k: v[keep] for k, v in a.items()}, (ys[c][ok] * mult)[keep], sw[ok][keep], x0[c],
+                           weighting, clip)
+            shifts[c].append(_reported(x, x0[c]) - base[c])
+    out: dict = {}
+    for c in fits:
+        S = np.asarray(shifts[c])
+        u_ = S.std(axis=0, ddof=1)
+        out[c] = {name: {"u": float(u_[i]), "dof": float(n_draws - 1)} for i, name in enumerate(PARAM_NAMES)}
+    out["_meta"] = {"method": "Monte Carlo over calibration draws (GUM-S1), warm-started point-model refits",
+                    "n_draws": int(n_draws), "rows": int(rows.size), "sources": list(sources), "seed": int(seed),
+                    "nominal_angle_max_dev_rad": ang_dev, "files": dict(cal.sources_files),
+                    "stated": {"intrinsics_std_px": cal.std_K,
+                               "lamps_std_mm": {str(k): s.tolist() for k, s in cal.lamps_std.items()},
+                               "albedo_u_rel": cal.albedo_u, "albedo_angular_u_rel": cal.angular_u}}
+    return out
+
+
+def _take(ang: dict, ok) -> dict:
+    return {k: a[ok] for k, a in ang.items() if k != "valid"}
+
+
+def _angle_check(nominal: dict, sub) -> float | None:
+    """Largest difference between the recomputed nominal angles and the table's (radians;
+    theta columns): the recomputation reproduces the extraction's geometry."""
+    ok = nominal["valid"]
+    devs = [np.nanmax(np.abs(nominal[k][ok] - sub[k].to_numpy(float)[ok]))
+            for k in ("theta_in", "theta_out", "theta_h") if k in sub and ok.any()]
+    return float(max(devs)) if devs else None
+
+
+def add_calibration(uncertainty: dict, cal: dict | None, note: str | None = None) -> dict:
+    """A channel's budget (fit.json's ``"uncertainty"``, :func:`glossrig.core.fitting.uncertainty.channel_budget`)
+    with the calibration component ``cal`` (``{param: {"u", "dof"}}``) put in and each
+    parameter's combination, coverage factor and interval recomputed; ``cal`` None: the
+    budget unchanged but for ``note`` in its ``omitted``."""
+    from glossrig.core.fitting.uncertainty import FOOTPRINT_DOF, parameter_budget
+
+    out = dict(uncertainty)
+    budget = dict(out.get("budget") or {})
+    omitted = dict(budget.get("omitted") or {})
+    if cal is None:
+        if note:
+            omitted["calibration"] = note
+        budget["omitted"] = omitted
+        out["budget"] = budget
+        return out
+    dofs = dict(budget.get("dof") or {})
+    dof_of = {"noise": dofs.get("noise"), "model": dofs.get("model"), "footprint": dofs.get("footprint", FOOTPRINT_DOF)}
+    for name in PARAM_NAMES:
+        e = out[name]
+        comps = {}
+        for k, uval in (e.get("components") or {}).items():
+            if k == "calibration" or uval is None:
+                continue
+            d = dof_of.get(k)
+            comps[k] = (float(uval), float(d) if d else math.inf)
+        comps["calibration"] = (float(cal[name]["u"]), float(cal[name].get("dof") or math.inf))
+        out[name] = parameter_budget(name, e["value"], comps)
+    omitted.pop("calibration", None)
+    budget["omitted"] = omitted
+    dofs["calibration"] = float(cal[PARAM_NAMES[0]].get("dof") or math.inf)
+    budget["dof"] = dofs
+    out["budget"] = budget
+    return out

@@ -1,0 +1,198 @@
+"""The studies' small library: run the ``glossrig`` command line, and the calibrated-twin
+chain the studies script (simulate -> calibrate camera -> calibrate lamps -> extract ->
+fit), each step a real ``glossrig`` command, so a study runs what a user runs.
+
+* :func:`glossrig` runs one command in a child process (``python -m glossrig.cli.main``
+  with this interpreter); a failure raises :class:`GlossrigFailed`, whose message names
+  the verb, the exit status, the command and - where the output was captured - the
+  last lines of its error output.
+* :func:`simulate` / :func:`capture` / :func:`checkerboard`: twin captures with the
+  studies' reuse rule (a complete capture is reused; a partial one is removed and
+  made again, or finished with ``--resume``, or every capture is made anew);
+* :func:`camera` and :func:`calibrate`: the camera and lamp calibration of the nominal
+  rig on the twin, resumable in a folder;
+* :func:`extract` and :func:`fit`: one step each, skipped when its output exists;
+* :func:`truth_camera` and :func:`truth_lamps`: the twin's true intrinsics and lamp
+  positions in the pipeline's own file formats (to isolate what a study compares from
+  the calibration's own error).
+
+Every helper passes ``stdout``/``stderr``/``echo``/``cwd`` on to :func:`glossrig`.
+"""
+from __future__ import annotations
+
+import json
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from glossrig.core.capture import capture_complete
+from validation.paths import RIG
+
+GLOSSRIG = (sys.executable, "-m", "glossrig.cli.main")
+TAIL_LINES = 20           # error-output lines a failure's message repeats
+
+
+class GlossrigFailed(subprocess.CalledProcessError):
+    """A ``glossrig`` command exited with a non-zero status (a CalledProcessError: ``cmd``,
+    ``returncode``, and ``stdout``/``stderr`` where they were captured)."""
+
+    @property
+    def verb(self) -> str:
+        return self.cmd[len(GLOSSRIG)] if len(self.cmd) > len(GLOSSRIG) else ""
+
+    @property
+    def last_line(self) -> str:
+        """The last non-blank line of the captured error output ('' where none was captured)."""
+        lines = [x for x in (self.stderr or "").strip().splitlines() if x.strip()]
+        return lines[-1] if lines else ""
+
+    @property
+    def summary(self) -> str:
+        return f"glossrig {self.verb} failed (exit {self.returncode}): {self.last_line}"
+
+    def __str__(self) -> str:
+        command = f"\n  command: {shlex.join(self.cmd)}"
+        if self.stderr is None:         # shown as it ran, not captured
+            return f"glossrig {self.verb} failed (exit {self.returncode}){command}\n  (its error output is above)"
+        text = self.stderr if self.stderr.strip() else (self.stdout or "")
+        lines = text.rstrip().splitlines()[-TAIL_LINES:]
+        which = "stderr" if self.stderr.strip() else "stdout"
+        return (f"{self.summary}{command}\n  {which} (last {len(lines)} lines):\n"
+                + "\n".join("  | " + x for x in lines))
+
+
+def glossrig(*args, stdout: bool = True, stderr: bool = True, echo: str | None = None,
+             cwd: str | Path | None = None) -> subprocess.CompletedProcess:
+    """Run ``glossrig ARGS`` (each argument through ``str``). ``stdout``/``stderr`` False:
+    that stream is captured (returned, and repeated in a failure's message) instead of
+    shown. ``echo``: print ``ECHO glossrig ARGS`` first (e.g. ``"+"``). Raises
+    :class:`GlossrigFailed` when the command fails."""
+    argv = [str(a) for a in args]
+    cmd = [*GLOSSRIG, *argv]
+    if echo:
+        print(f"{echo} glossrig " + " ".join(argv), flush=True)
+    r = subprocess.run(cmd, cwd=cwd, text=True, errors="replace",
+                       stdout=None if stdout else subprocess.PIPE, stderr=None if stderr else subprocess.PIPE)
+    if r.returncode:
+        raise GlossrigFailed(r.returncode, cmd, r.stdout, r.stderr)
+    return r
+
+
+# ------------------------------------------------------------------ twin captures
+
+def needs_capture(out: Path) -> bool:
+    """False when OUT holds a complete capture; else True, after removing what OUT holds."""
+    if capture_complete(out):
+        return False
+    if out.exists():
+        shutil.rmtree(out)
+    return True
+
+
+def simulate(out: Path, *args, rig: Path = RIG, extra=(), mode: str = "reuse", **run) -> Path:
+    """``glossrig simulate --rig RIG ARGS --no-progress --out OUT EXTRA``. ``mode``:
+    ``reuse`` (a complete capture in OUT is kept, a partial one removed and made again),
+    ``resume`` (kept; a partial one finished with ``--resume``) or ``fresh`` (always made
+    anew). With ``echo`` a reused capture is said."""
+    out = Path(out)
+    resume = []
+    if mode == "fresh":
+        if out.exists():
+            shutil.rmtree(out)
+    elif mode == "resume":
+        if capture_complete(out):
+            if run.get("echo"):
+                print(f"reusing the complete capture {out}", flush=True)
+            return out
+        resume = ["--resume"] if out.exists() and any(out.iterdir()) else []
+    elif mode == "reuse":
+        if not needs_capture(out):
+            if run.get("echo"):
+                print(f"reusing the complete capture {out}", flush=True)
+            return out
+    else:
+        raise ValueError(f"mode {mode!r}: reuse, resume or fresh")
+    glossrig("simulate", "--rig", rig, *args, "--no-progress", "--out", out, *extra, *resume, **run)
+    return out
+
+
+def capture(out: Path, material: str, scale: float, seed: int, rotations: str = "0", repeats: int = 1, *,
+            leds: str = "middle", extra=(), rig: Path = RIG, mode: str = "reuse", **run) -> Path:
+    """A capture of MATERIAL: :func:`simulate` with ``--material --leds --rotations
+    --repeats --scale --seed``."""
+    return simulate(out, "--material", material, "--leds", leds, f"--rotations={rotations}", "--repeats", repeats,
+                    "--scale", scale, "--seed", seed, rig=rig, extra=extra, mode=mode, **run)
+
+
+def checkerboard(out: Path, views: int, scale: float, seed: int, *, rig: Path = RIG, **run) -> Path:
+    """Checkerboard views for the camera calibration: :func:`simulate` ``--target checkerboard``."""
+    return simulate(out, "--target", "checkerboard", "--views", views, "--scale", scale, "--seed", seed, rig=rig,
+                    **run)
+
+
+# ------------------------------------------------------------------ the calibrated twin
+
+def camera(out: Path, checker: Path, views: int, scale: float, seed: int, *, rig: Path = RIG, **run) -> Path:
+    """VIEWS checkerboard views in CHECKER (seed) -> ``glossrig calibrate camera`` -> OUT;
+    an OUT that exists is kept."""
+    if not out.exists():
+        checkerboard(checker, views, scale, seed, rig=rig, **run)
+        glossrig("calibrate", "camera", checker, "--out", out, **run)
+    return out
+
+
+def calibrate(out: Path, scale: float, seed: int, lamp_rotations: str = "0", repeats: int = 1,
+              leds: str = "middle", extra=()) -> tuple[Path, Path]:
+    """Camera and lamp calibration of the nominal rig on the twin, resumable in OUT: 12
+    checkerboard views (seed) -> `glossrig calibrate camera` -> OUT/camera.json; a
+    transparency-sheet capture of LEDS (seed + 1; EXTRA passed to its simulate) ->
+    `glossrig calibrate lamps` (thesis 4.3.4) -> OUT/lamps.json. A camera.json or
+    lamps.json already in OUT is kept."""
+    cam = camera(out / "camera.json", out / "checker", 12, scale, seed)
+    lamps = out / "lamps.json"
+    if not lamps.exists():
+        spec = capture(out / "specular", "transparency_sheet", scale, seed + 1, lamp_rotations, repeats, leds=leds,
+                       extra=extra)
+        glossrig("calibrate", "lamps", spec, "--camera", cam, "--out", lamps)
+    return cam, lamps
+
+
+def extract(capture_dir: Path, reference: Path, camera_json: Path, lamps_json: Path, out: Path, *extra,
+            **run) -> Path:
+    """``glossrig extract`` of a capture against a reference into OUT (Parquet); an OUT
+    that exists is kept."""
+    if not Path(out).exists():
+        glossrig("extract", capture_dir, "--reference", reference, "--camera", camera_json, "--lamps", lamps_json,
+                 "--out", out, "--no-progress", *extra, **run)
+    return out
+
+
+def fit(samples: Path, out: Path, *extra, **run) -> Path:
+    """``glossrig fit SAMPLES --out OUT EXTRA``; an OUT that exists is kept."""
+    if not Path(out).exists():
+        glossrig("fit", samples, "--out", out, *extra, **run)
+    return out
+
+
+def truth_camera(capture_dir: Path, out: Path) -> Path:
+    """The twin's true intrinsics (the capture's truth.json) as a camera.json at OUT (replaced)."""
+    import numpy as np
+
+    from glossrig.core.calibration.intrinsics import CameraCalibration, save_camera
+
+    t = json.loads((Path(capture_dir) / "truth.json").read_text())
+    K = np.array(t["camera_matrix"])
+    cal = CameraCalibration(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], distortion=tuple(t["distortion"]),
+                            image_size=tuple(t["image_size"]), rms_px=0.0)
+    return save_camera(cal, {"source": "twin truth.json"}, out, overwrite=True)
+
+
+def truth_lamps(capture_dir: Path, out: Path) -> Path:
+    """The twin's true lamp positions (the capture's truth.json) as a lamps.json at OUT (replaced)."""
+    t = json.loads((Path(capture_dir) / "truth.json").read_text())
+    out = Path(out)
+    out.write_text(json.dumps({"kind": "glossrig.lamps", "lamps_mm": t["led_positions_mm"],
+                               "source": "twin truth.json"}))
+    return out
