@@ -31,11 +31,14 @@ reads, r, g, b their own planes (16 lattice points for luminance, 8 for g, 4 for
 b); each pixel's area by Gauss-Legendre quadrature per pixel axis, of an order chosen
 from how far one pixel moves the slope relative to the lobe's narrower width,
 ``h / alpha_min`` with ``h`` the 90th percentile of ``|J e_axis|`` over the rows near
-the lobe (:func:`kernel_orders`): 1 point where ``h / alpha_min < 0.15`` (the pixel's own
-extent is invisible), 2 below 0.5 (exact for integrands cubic across a pixel, and the
-box's variance 1/12 px^2 exactly), else ``ceil(2 + h / alpha_min)`` up to 8. Measured
-on a scale-0.25 twin table against a 12-point rule: at most 1e-5 relative for a lobe
-of alpha 0.034 (2 x 1 points), 2e-4 for alpha 0.0031 (4-5 points). The fit chooses
+the lobe (:func:`kernel_orders`): 1 point where ``h / alpha_min < 0.02`` (the pixel's own
+extent is invisible: the box's variance h^2 / 12 is left out), 2 below 0.5 (exact for
+integrands cubic across a pixel, and the box's variance exactly), else
+``ceil(2 + h / alpha_min)`` up to 8. Measured on a scale-0.25 twin table (one pixel
+column moves the slope ~0.0004, one row ~0.0055) against a 12 x 12-point rule, largest
+relative difference over the samples: 1.7e-5 for alpha 0.034 (1 x 2 points, sample_2_6),
+2e-5 for alpha 0.0075 (2 x 3), 2.2e-4 for alpha 0.0031 (2 x 4, transparency_sheet);
+with 1 point along the columns at alpha 0.0075 it was 1.6e-3. The fit chooses
 the orders from its start and, where the optimum's lobe needs finer ones, polishes
 again with them. The Bayer pattern is the rig's (``cfa``, default RGGB, the thesis's
 D750 and the twin's sensor).
@@ -77,7 +80,7 @@ def kernel_orders(J: np.ndarray, has: np.ndarray, alpha_min: float) -> tuple[int
     for axis in range(2):
         col = np.hypot(J[has, 0, axis], J[has, 1, axis])
         r = float(np.percentile(col, 90)) / max(alpha_min, 1e-12) if col.size else 0.0
-        orders.append(1 if r < 0.15 else 2 if r < 0.5 else int(min(8, math.ceil(2 + r))))
+        orders.append(1 if r < 0.02 else 2 if r < 0.5 else int(min(8, math.ceil(2 + r))))
     return orders[0], orders[1]
 
 
