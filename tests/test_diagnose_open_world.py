@@ -175,3 +175,62 @@ def test_verdict_rules_and_report_fields(tmp_path):
     assert d["calibration"]["heldout_error"] == pytest.approx(1.02)
     assert "axis_position" in (tmp_path / "report.md").read_text()
     json.dumps(d)
+
+
+# ----------------------------------------------------------------- Beckmann / Cook-Torrance lobe
+
+def test_beckmann_lobe_is_normalised_reciprocal_and_fitted():
+    from glossrig.core.diagnose.material_models import beckmann_lobe, beckmann_ndf, fit_lobe
+
+    from test_material_models import _angles, _args, _rig_like
+    from glossrig.core.models.angles import local_direction
+
+    th = np.linspace(0, np.pi / 2, 4001)[1:-1]
+    ph = np.linspace(0, 2 * np.pi, 721)[:-1]
+    T, P = np.meshgrid(th, ph, indexing="ij")
+    total = np.trapezoid((beckmann_ndf(T, P, 0.3, 0.1, 0.7) * np.cos(T) * np.sin(T)).sum(axis=1)
+                         * (2 * np.pi / len(ph)), th)
+    assert abs(total - 1) < 0.01, total
+    rng = np.random.default_rng(1)
+    wi = local_direction(rng.uniform(0, 1.4, 3000), rng.uniform(0, 2 * np.pi, 3000))
+    wo = local_direction(rng.uniform(0, 1.4, 3000), rng.uniform(0, 2 * np.pi, 3000))
+    np.testing.assert_allclose(beckmann_lobe(*_args(_angles(wi, wo)), 0.2, 0.07, 0.9),
+                               beckmann_lobe(*_args(_angles(wo, wi)), 0.2, 0.07, 0.9), rtol=1e-9)
+    a = _rig_like(3000, np.random.default_rng(5))
+    y = 0.5 / np.pi + 0.3 * beckmann_lobe(*_args(a), 0.3, 0.15, 0.3)
+    f = fit_lobe(a, y, np.ones_like(y), "beckmann", start=(0.1, 0.1, 0.0))
+    assert abs(f.alpha_x / 0.3 - 1) < 0.01 and abs(f.alpha_y / 0.15 - 1) < 0.01 and abs(f.rho_d / 0.5 - 1) < 0.01
+
+
+# ----------------------------------------------------------------- shutter (exposure-time) error
+
+def _shutter_frames(seed, delta):
+    """Two LEDs' exposure series (photon-transfer noise) exposed for t + delta at nominal t."""
+    from glossrig.core.diagnose.data import FrameData, LedFrames
+
+    from test_diagnose import BLACK, E_PER_DN, READ, WHITE
+
+    rng = np.random.default_rng(seed)
+    t = 0.00025 * 2.0 ** np.arange(16)
+    leds = []
+    for k, led in enumerate((6, 9)):
+        rate = np.exp(rng.uniform(np.log(20), np.log(2e6), (60, 80)))
+        x = rate[None] * (t + delta)[:, None, None]
+        x = x + rng.normal(0.0, 1.0, x.shape) * np.sqrt(x / E_PER_DN + READ ** 2)
+        dn = np.clip(np.round(BLACK + np.minimum(x, WHITE - BLACK)), 0, WHITE).astype(np.float32)
+        leds.append(LedFrames(led, 0.0, dn, t, 600.0 * k + np.cumsum(t + 9.0), np.full((60, 80), BLACK), (0, 0)))
+    return FrameData(leds, WHITE, E_PER_DN, READ)
+
+
+def test_shutter_error_found_with_magnitude():
+    from glossrig.core.diagnose.frames import frame_causes
+
+    from test_diagnose import winner
+
+    delta = float(np.random.default_rng(8).uniform(2e-5, 8e-5))        # 8-32 % of the shortest exposure
+    causes = frame_causes(_shutter_frames(8, delta))
+    w = winner(causes)
+    assert w is not None and w.name == "shutter_error" and w.kind == "instrument", [
+        (c.name, round(c.gain, 5), c.significant) for c in causes]
+    assert abs(w.params["delta_s"] - delta) < 0.15 * delta, (w.params, delta)
+    assert winner(frame_causes(_shutter_frames(9, 0.0))) is None

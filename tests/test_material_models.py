@@ -130,7 +130,7 @@ def test_fit_lobe_recovers_ggx_parameters():
     assert abs(f.alpha_x / 0.15 - 1) < 0.01 and abs(f.alpha_y / 0.07 - 1) < 0.01
     assert abs(f.lobe_rotation - 0.5) < 0.01 and abs(f.rho_s / 0.2 - 1) < 0.01 and abs(f.rho_d / 0.08 - 1) < 0.01
     assert all(np.isfinite(v) for v in f.stderr.values())
-    assert set(LOBES) == {"ward", "ggx"}
+    assert set(LOBES) == {"ward", "ggx", "beckmann"}
     assert angle_arrays({k: a[k] for k in a})["theta_d"].size == 5000
 
 

@@ -79,7 +79,9 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
         w = stage("material_fit", lambda: fit_samples(t, channels=["luminance"]).fits["luminance"].params)
     log(f"material: {w}")
     m = BrdfModel.build(data, w)
-    causes = stage("brdf_causes", lambda: brdf_causes(m))
+    log(f"base model's normalised held-out error {m.calibration.get('heldout_error', float('nan')):.3g} "
+        f"(noise alone {m.calibration.get('heldout_error_noise_only', float('nan')):.3g}); fitting the BRDF-space causes")
+    causes = stage("brdf_causes", lambda: brdf_causes(m, log=log))
     log(f"BRDF-space causes done ({time.time() - t0:.0f} s)")
 
     def frame_stage():
@@ -100,7 +102,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
                        "frames": "even / odd exposure index", "pixels": "even / odd exposure index (pixel set found under every LED)"},
             "time_s": time.time() - t0}
     open_world = unexplained(m, fstructure)
-    log(f"base model's normalised held-out error {m.calibration.get('heldout_error', float('nan')):.3g}; "
-        f"residual structure tested against {len(open_world)} variables")
+    log(f"residual structure tested against {len(open_world)} variables; "
+        f"{sum(e['significant'] for e in open_world)} carry structure no cause explains")
     return write_report(out, causes, base, structure, meta, plots=plots, unexplained=open_world,
                         calibration=m.calibration)

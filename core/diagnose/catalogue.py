@@ -278,7 +278,13 @@ def vignetting_factor(u, v, size, pp):
     return ((u - cx) ** 2 + (v - cy) ** 2) / rc2
 
 
-def brdf_causes(m: BrdfModel) -> list[CauseResult]:
+def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
+    """Every BRDF-space cause, fitted and scored; ``log`` (callable(str)) gets one line per group
+    of causes as it finishes (progress)."""
+    import time
+
+    t0 = time.time()
+    say = log or (lambda *a: None)
     c = m.cols
     d = m.data
     out = []
@@ -359,7 +365,12 @@ def brdf_causes(m: BrdfModel) -> list[CauseResult]:
 
     from glossrig.core.diagnose.flexible import flexible_cause, material_first
 
-    out = out + geometry_causes(m) + material_causes(m) + [flexible_cause(m)]
+    say(f"  light and rotation causes done ({time.time() - t0:.0f} s)")
+    out = out + geometry_causes(m)
+    say(f"  rig geometry causes done ({time.time() - t0:.0f} s)")
+    out = out + material_causes(m)
+    say(f"  material and reference models done ({time.time() - t0:.0f} s)")
+    out = out + [flexible_cause(m)]
     material_first(out)
     return out
 

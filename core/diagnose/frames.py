@@ -9,6 +9,8 @@ noise). Each cause bends that line in its own way:
   every exposure, so it stands out against the short exposures of dark pixels.
 * sensor_nonlinearity c: ``DN - black = x (1 - c x / (white - black))``, x = rate t:
   a deficit that grows with the signal level, the same at any exposure time.
+* shutter_error delta: ``DN - black = rate (t + delta)``: the true exposure time differs
+  from the nominal one by a constant, most in relative terms at the shortest times.
 * led_drift a: ``DN - black = rate t (1 + a tau)`` with tau the frame's time (minutes)
   from the middle of its LED's sequence: a gain trend against capture order that
   the same pixel shows at every signal level (the LED warms, thesis fig. 4.12).
@@ -206,9 +208,24 @@ def frame_causes(fd: FrameData) -> list[CauseResult]:
            "same at any exposure time, so long and short exposures of one pixel disagree in proportion to DN.")
     out.append(_frame_cause(fs, "sensor_nonlinearity", doc, "c", "relative compression at white", (-0.1, 0.3),
                             lambda c: (lambda i, M: _linear_pred(fs, i, M, c=c))))
+    out.append(shutter_cause(fs))
     out.append(_drift_cause(fs))
     out.append(hot_pixel_cause(fd))
     return out
+
+
+def shutter_cause(fs: FrameSet) -> CauseResult:
+    """Exposure-time (shutter) error: the true exposure is ``t + delta`` for the nominal t."""
+    doc = ("Exposure-time (shutter) error: a focal-plane or leaf shutter opens and closes in a finite time, so "
+           "the true exposure differs from the nominal one by a near-constant delta (ISO 516 defines the "
+           "effective exposure time by the shutter's opening and closing; measured offsets are tens of "
+           "microseconds). DN - black = rate (t + delta): the relative error delta / t is largest at the "
+           "shortest times and the same at every signal level and pixel, unlike a black offset (additive in DN, "
+           "largest for dark pixels) or a non-linearity (a function of the DN level).")
+    tmin = float(min(np.min(t) for t in fs.T))
+    return _frame_cause(fs, "shutter_error", doc, "delta_s", "seconds added to every nominal exposure",
+                        (-0.5 * tmin, 2.0 * tmin),
+                        lambda d: (lambda i, M: _linear_pred(fs, i, M, gain=(fs.T[i] + d) / fs.T[i])))
 
 
 def _drift_cause(fs: FrameSet) -> CauseResult:

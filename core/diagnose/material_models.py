@@ -78,11 +78,18 @@ def schlick_ratio(theta_d, n):
 def ggx_lobe(theta_in, phi_in, theta_out, phi_out, theta_h, phi_h, theta_d, ax, ay, rot=0.0, n=None):
     """Unit-albedo GGX lobe ``D G2 / (4 cos_i cos_o)`` (times Schlick's F/F0 when n is given);
     zero below the horizon. Angles in radians, arrays broadcast."""
+    return _microfacet(ggx_ndf, smith_lambda, theta_in, phi_in, theta_out, phi_out, theta_h, phi_h, theta_d,
+                       ax, ay, rot, n)
+
+
+def _microfacet(ndf, lam, theta_in, phi_in, theta_out, phi_out, theta_h, phi_h, theta_d, ax, ay, rot, n):
+    """``D G2 / (4 cos_i cos_o)`` (times F/F0 when n is given) with height-correlated Smith masking
+    ``G2 = 1 / (1 + Lambda_i + Lambda_o)`` of the distribution ``ndf`` and its ``lam``."""
     ci, co = np.cos(theta_in), np.cos(theta_out)
     ok = (ci > 0) & (co > 0)
-    g2 = 1.0 / (1.0 + smith_lambda(theta_in, phi_in, ax, ay, rot) + smith_lambda(theta_out, phi_out, ax, ay, rot))
+    g2 = 1.0 / (1.0 + lam(theta_in, phi_in, ax, ay, rot) + lam(theta_out, phi_out, ax, ay, rot))
     with np.errstate(divide="ignore", invalid="ignore"):
-        L = ggx_ndf(theta_h, phi_h, ax, ay, rot) * g2 / (4 * np.where(ok, ci * co, 1.0))
+        L = ndf(theta_h, phi_h, ax, ay, rot) * g2 / (4 * np.where(ok, ci * co, 1.0))
     return np.where(ok, L * schlick_ratio(theta_d, n), 0.0)
 
 
@@ -92,7 +99,30 @@ def ward_lobe(theta_in, phi_in, theta_out, phi_out, theta_h, phi_h, theta_d, ax,
     return L * schlick_ratio(theta_d, n)
 
 
-LOBES: dict[str, Callable[..., np.ndarray]] = {"ward": ward_lobe, "ggx": ggx_lobe}
+def beckmann_ndf(theta_h, phi_h, ax, ay, rot=0.0):
+    """Anisotropic Beckmann normal distribution, normalised: int D cos(theta_h) dw_h = 1."""
+    c = np.cos(theta_h)
+    return np.exp(-np.tan(theta_h) ** 2 * _axes_quadratic(phi_h, rot, ax, ay)) / (np.pi * ax * ay * c ** 4)
+
+
+def beckmann_lambda(theta, phi, ax, ay, rot=0.0):
+    """Smith's Lambda of the Beckmann distribution, Walter et al. (2007) rational fit (eq. 27)
+    of ``(erf-based exact form)``, with the projected roughness along the direction's azimuth."""
+    alpha = 1.0 / np.sqrt(_axes_quadratic(phi, rot, ax, ay))
+    with np.errstate(divide="ignore"):
+        a = 1.0 / np.maximum(alpha * np.tan(theta), 1e-12)
+    lam = (1 - 1.259 * a + 0.396 * a * a) / (3.535 * a + 2.181 * a * a)
+    return np.where(a < 1.6, lam, 0.0)
+
+
+def beckmann_lobe(theta_in, phi_in, theta_out, phi_out, theta_h, phi_h, theta_d, ax, ay, rot=0.0, n=None):
+    """Cook-Torrance lobe with the Beckmann distribution (Cook & Torrance 1982, Walter et al. 2007):
+    ``D G2 / (4 cos_i cos_o)``, height-correlated Smith masking (times Schlick's F/F0 when n is given)."""
+    return _microfacet(beckmann_ndf, beckmann_lambda, theta_in, phi_in, theta_out, phi_out, theta_h, phi_h, theta_d,
+                       ax, ay, rot, n)
+
+
+LOBES: dict[str, Callable[..., np.ndarray]] = {"ward": ward_lobe, "ggx": ggx_lobe, "beckmann": beckmann_lobe}
 
 
 def renormalise(rgb, reference_rgb, albedo: float = 0.8):
@@ -280,10 +310,19 @@ def material_causes(m) -> list:
            "Trowbridge-Reitz lobe D G2 / (4 cos_i cos_o) with height-correlated Smith masking (Walter et al. "
            "2007, Heitz 2014), axes turned as in eq. 4.80. Real glossy surfaces have GGX's long tails: the Ward "
            "fit then underestimates the tails and overshoots the flanks of the peak.")
-    e1, e0, gains, f = _refit_cause(m, a, "ggx", np.ones_like(c["y"]), start)
-    out.append(CauseResult("ggx_lobe", "brdf", doc, dict({k: getattr(f, k) for k in names},
-                                                           unit="GGX roughness, radians"),
-                           f.stderr, e1, e0, gains, 0, magnitude=f.alpha_x))
+    lobe_docs = [("ggx", "ggx_lobe", doc, "GGX roughness, radians")]
+
+    # ---- Cook-Torrance lobe with the Beckmann distribution (same number of parameters as Ward's)
+    doc = ("Cook-Torrance lobe: Ward's lobe replaced by the microfacet lobe D G2 / (4 cos_i cos_o) with the "
+           "anisotropic Beckmann distribution and its height-correlated Smith masking (Cook & Torrance 1982; "
+           "Walter et al. 2007, Lambda by their rational fit), axes turned as in eq. 4.80. Ward's lobe is a "
+           "Beckmann-like Gaussian in tan(theta_h) without masking and with a 1/sqrt(cos_i cos_o) factor: the two "
+           "part at grazing angles and on rough lobes, where masking removes light.")
+    lobe_docs.append(("beckmann", "beckmann_lobe", doc, "Beckmann roughness, radians"))
+    for kind, name, doc, unit in lobe_docs:
+        e1, e0, gains, f = _refit_cause(m, a, kind, np.ones_like(c["y"]), start)
+        out.append(CauseResult(name, "brdf", doc, dict({k: getattr(f, k) for k in names}, unit=unit),
+                               f.stderr, e1, e0, gains, 0, magnitude=f.alpha_x))
 
     # ---- the reference's own BRDF instead of Lambertian albedo 0.8 (no extra parameter)
     ref = getattr(m.data, "reference_brdf", None)
