@@ -20,14 +20,14 @@ Every helper passes ``stdout``/``stderr``/``echo``/``cwd`` on to :func:`glossrig
 """
 from __future__ import annotations
 
-import json
 import shlex
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
-from glossrig.core.capture import capture_complete
+from glossrig.core.atomic import atomic_write_json
+from glossrig.core.capture import capture_complete, read_truth
 from validation.paths import RIG
 
 GLOSSRIG = (sys.executable, "-m", "glossrig.cli.main")
@@ -182,7 +182,7 @@ def truth_camera(capture_dir: Path, out: Path) -> Path:
 
     from glossrig.core.calibration.intrinsics import CameraCalibration, save_camera
 
-    t = json.loads((Path(capture_dir) / "truth.json").read_text())
+    t = read_truth(capture_dir)
     K = np.array(t["camera_matrix"])
     cal = CameraCalibration(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], distortion=tuple(t["distortion"]),
                             image_size=tuple(t["image_size"]), rms_px=0.0)
@@ -191,8 +191,7 @@ def truth_camera(capture_dir: Path, out: Path) -> Path:
 
 def truth_lamps(capture_dir: Path, out: Path) -> Path:
     """The twin's true lamp positions (the capture's truth.json) as a lamps.json at OUT (replaced)."""
-    t = json.loads((Path(capture_dir) / "truth.json").read_text())
+    t = read_truth(capture_dir)
     out = Path(out)
-    out.write_text(json.dumps({"kind": "glossrig.lamps", "lamps_mm": t["led_positions_mm"],
-                               "source": "twin truth.json"}))
+    atomic_write_json(out, {"kind": "glossrig.lamps", "lamps_mm": t["led_positions_mm"], "source": "twin truth.json"})
     return out
