@@ -246,6 +246,33 @@ class Measured:
     geometry: dict           # rotation -> RotationGeometry
 
 
+def measure_unit(man: Manifest, rig: Rig, g: RotationGeometry, rot: float, led: int,
+                 lamps: dict[int, np.ndarray] | None, estimator: str = "ml") -> pd.DataFrame:
+    """One (rotation, LED) unit of :func:`measure_capture`: that LED's exposure sequences
+    read and combined into HDR values per Bayer block (:func:`led_values`), with each
+    block's pixel, surface point, normal and (when ``lamps`` are given) angles. Depends
+    only on its arguments, so units can be measured in any order or process."""
+    lv = led_values(man, rig, g, led, estimator)
+    s = g.surface
+    df = pd.DataFrame({"u": np.floor(s.u).astype(np.int32), "v": np.floor(s.v).astype(np.int32)})
+    df["led"], df["rotation"] = np.int32(led), float(rot)
+    for k, c in enumerate("rgb"):
+        df[c] = lv.values[:, k]
+        df[f"var_{c}"] = lv.variance[:, k]
+        df[f"status_{c}"] = lv.status[:, k]
+        df[f"fix_s_{c}"] = lv.exposure_to_fix[:, k]
+    df["x"], df["y"], df["z"] = s.points[:, 0], s.points[:, 1], s.points[:, 2]
+    df["nx"], df["ny"], df["nz"] = s.normals[:, 0], s.normals[:, 1], s.normals[:, 2]
+    if lamps is not None:
+        if led not in lamps:
+            raise InputError(f"lamp positions have no LED {led}")
+        ang = sample_angles(s, lamps[led], rot)
+        for col in ANGLE_COLUMNS:
+            df[col] = ang[col]
+        df["cos_in"], df["cos_out"] = ang["cos_in"], ang["cos_out"]
+    return df
+
+
 def measure_capture(folder, cam: CameraCalibration, lamps: dict[int, np.ndarray] | None, estimator: str = "ml",
                     progress: bool = False, name: str = "SAMPLE_DIR", what: str = "extract",
                     store=None, unit_prefix: str = "") -> Measured:
@@ -280,24 +307,7 @@ def measure_capture(folder, cam: CameraCalibration, lamps: dict[int, np.ndarray]
             frames.append(store.load(unit))
             bar.update(1)
             continue
-        lv = led_values(man, rig, g, led, estimator)
-        s = g.surface
-        df = pd.DataFrame({"u": np.floor(s.u).astype(np.int32), "v": np.floor(s.v).astype(np.int32)})
-        df["led"], df["rotation"] = np.int32(led), float(rot)
-        for k, c in enumerate("rgb"):
-            df[c] = lv.values[:, k]
-            df[f"var_{c}"] = lv.variance[:, k]
-            df[f"status_{c}"] = lv.status[:, k]
-            df[f"fix_s_{c}"] = lv.exposure_to_fix[:, k]
-        df["x"], df["y"], df["z"] = s.points[:, 0], s.points[:, 1], s.points[:, 2]
-        df["nx"], df["ny"], df["nz"] = s.normals[:, 0], s.normals[:, 1], s.normals[:, 2]
-        if lamps is not None:
-            if led not in lamps:
-                raise InputError(f"lamp positions have no LED {led}")
-            ang = sample_angles(s, lamps[led], rot)
-            for col in ANGLE_COLUMNS:
-                df[col] = ang[col]
-            df["cos_in"], df["cos_out"] = ang["cos_in"], ang["cos_out"]
+        df = measure_unit(man, rig, g, rot, led, lamps, estimator)
         if store is not None:
             store.save(unit, df)
         frames.append(df)
