@@ -29,7 +29,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from glossrig.core.capture import check_rotation_tags, image_stem, rotation_tag  # noqa: F401 - rotation_tag re-exported
+from glossrig.core.capture import check_rotation_tags, image_stem
 from glossrig.core.errors import InputError
 from glossrig.core.resources import resolve_input
 from glossrig.core.rig import Rig, load_rig

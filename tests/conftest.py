@@ -160,21 +160,84 @@ def lamps_json_from_truth(truth: dict, leds=("9",)) -> dict:
     return {"kind": "glossrig.lamps", "lamps_mm": {k: v for k, v in truth["led_positions_mm"].items() if k in leds}}
 
 
+SHARED_FOLDER_WAIT_S = 1800     # pyproject's per-test timeout: no capture fixture takes longer
+
+
+def run_shared_folder(tmp_path_factory, name: str, inputs, make, *, wait_s: float = SHARED_FOLDER_WAIT_S,
+                      poll_s: float = 0.2) -> Path:
+    """A folder made once per test run by ``make(folder)``, not once per pytest-xdist
+    worker (``--dist loadfile`` gives each worker its own session, so a session fixture
+    alone is made by every worker whose modules use it).
+
+    The folder lies in the run's base temporary folder, which the workers share (each
+    worker's own base is a sub-folder of it), named by NAME and a hash of INPUTS (what
+    ``make`` depends on: two fixtures with other inputs never share a folder). The first
+    worker to take the folder's lock makes it under a temporary name and renames it into
+    place, so a folder that exists is complete; the others wait for the lock (polling, at
+    most ``wait_s`` seconds, then TimeoutError naming the lock) and use it. A ``make``
+    that fails leaves nothing: the next worker tries again and fails its own tests the
+    same way. Users must not change the folder (copy what they edit)."""
+    import fcntl
+    import hashlib
+    import json
+    import shutil
+    import time
+
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent           # the controller's base: xdist puts each worker's in it
+    digest = hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    folder = base / f"shared-{name}-{digest}"
+    lock_path = base / f".{folder.name}.lock"
+    with open(lock_path, "a") as lock:
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"{lock_path}: still locked after {wait_s:.0f} s (another pytest worker "
+                                       f"making {folder.name})") from None
+                time.sleep(poll_s)
+        try:
+            if not folder.is_dir():
+                part = base / f".{folder.name}.{os.getpid()}.part"
+                shutil.rmtree(part, ignore_errors=True)
+                part.mkdir()
+                try:
+                    make(part)
+                except BaseException:
+                    shutil.rmtree(part, ignore_errors=True)
+                    raise
+                part.rename(folder)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+    return folder
+
+
+#: the tiny captures' simulate options (their seeds: reference 6, sample 7)
+TINY_SIM = ("--rig", RIG, "--repeats", 1, "--scale", 0.12, "--spp", 1, "--rotations", 0, "--leds", "9",
+            "--no-progress")
+
+
+def _make_tiny_captures(d: Path) -> None:
+    import json
+
+    glossrig_cli("simulate", *TINY_SIM, "--material", "lambert:0.8", "--seed", 6, "--out", d / "ref")
+    glossrig_cli("simulate", *TINY_SIM, "--material", "sample_2_6", "--seed", 7, "--out", d / "sample")
+    t = json.loads((d / "sample" / "truth.json").read_text())
+    (d / "camera.json").write_text(json.dumps(camera_json_from_truth(t)))
+    (d / "lamps.json").write_text(json.dumps(lamps_json_from_truth(t)))
+
+
 @pytest.fixture(scope="session")
 def tiny_captures(tmp_path_factory):
     """The smallest twin measurement: one-LED (LED 9) sample (sample_2_6) and lambert:0.8
     reference captures at scale 0.12, one rotation, one repeat, 1 spp, with ``camera.json``
     and ``lamps.json`` written from the twin's truth, so no calibration capture is rendered.
-    Folder layout: ``sample/``, ``ref/``, ``camera.json``, ``lamps.json``. Shared by the
-    session: tests must not change it (copy what they edit)."""
-    import json
-
-    d = tmp_path_factory.mktemp("tiny_captures")
-    sim = ("--rig", RIG, "--repeats", 1, "--scale", 0.12, "--spp", 1, "--rotations", 0, "--leds", "9",
-           "--no-progress")
-    glossrig_cli("simulate", *sim, "--material", "lambert:0.8", "--seed", 6, "--out", d / "ref")
-    glossrig_cli("simulate", *sim, "--material", "sample_2_6", "--seed", 7, "--out", d / "sample")
-    t = json.loads((d / "sample" / "truth.json").read_text())
-    (d / "camera.json").write_text(json.dumps(camera_json_from_truth(t)))
-    (d / "lamps.json").write_text(json.dumps(lamps_json_from_truth(t)))
-    return d
+    Folder layout: ``sample/``, ``ref/``, ``camera.json``, ``lamps.json``. Made once per run
+    and shared by every worker (:func:`run_shared_folder`): tests must not change it (copy
+    what they edit)."""
+    inputs = {"sim": TINY_SIM, "rig": RIG.read_text(), "ref": ("lambert:0.8", 6), "sample": ("sample_2_6", 7)}
+    return run_shared_folder(tmp_path_factory, "tiny_captures", inputs, _make_tiny_captures)

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from glossrig.core.capture import ImageEntry
+from glossrig.core.capture import ImageEntry, rotation_tag
 from glossrig.core.errors import InputError
 from glossrig.core.rig import REPO_ROOT
-from glossrig.hardware.plan import THESIS_OVERHEAD_S, describe, load_plan, rotation_tag
+from glossrig.hardware.plan import THESIS_OVERHEAD_S, describe, load_plan
 
 RIG = REPO_ROOT / "scenes" / "thesis_rig.toml"
 BASE = f"""rig = "{RIG}"

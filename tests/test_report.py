@@ -165,6 +165,7 @@ def test_report_sections_say_what_they_hold(report, measured):
     html = report["html"].read_text()
     for text in (md, html):
         assert "noise-only" in text                    # the fit's standard errors keep their label
+        assert "Uncertainty budget (GUM)" in text      # and the budget beside them (issue 15)
         assert "extrapolated" in text and "gu85" in text   # the fit's gloss units with their model spread
         assert "Markers and poses: not drawn" in text  # no camera.json given
         assert "Camera calibration: not given." in text

@@ -226,11 +226,13 @@ def test_extract_resumes_an_interrupted_run_and_equals_an_uninterrupted_one(caps
         return real(*a, **k)
 
     monkeypatch.setattr(ex, "led_values", interrupted)
-    assert main(["extract", *map(str, _inputs(caps)), "--out", str(part), "--no-progress"]) == 130
+    # --workers 1: the patched led_values runs in this process only
+    assert main(["extract", *map(str, _inputs(caps)), "--out", str(part), "--no-progress", "--workers", "1"]) == 130
     assert not part.exists() and len(list(work_folder_for(part).glob("*.parquet"))) == 1
     counted = []
     monkeypatch.setattr(ex, "led_values", lambda *a, **k: counted.append(a[3]) or real(*a, **k))
-    assert main(["extract", *map(str, _inputs(caps)), "--out", str(part), "--no-progress", "--resume"]) == 0
+    assert main(["extract", *map(str, _inputs(caps)), "--out", str(part), "--no-progress", "--resume",
+                 "--workers", "1"]) == 0
     assert len(counted) == 1                         # the sample's LED reused, the reference's measured
     pd.testing.assert_frame_equal(pd.read_parquet(part), pd.read_parquet(full), check_exact=True)
     assert not work_folder_for(part).exists()

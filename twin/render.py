@@ -67,7 +67,28 @@ class LensMap:
     def build(cls, camera, scale: float, margin_px: int = 3, supersample: int | None = None) -> LensMap:
         """Lens map of ``camera`` at ``scale``; the canvas is ``supersample`` times finer
         than the output (default :attr:`DEFAULT_SUPERSAMPLE` within :attr:`MAX_CANVAS_MP`;
-        1 = no supersampling)."""
+        1 = no supersampling).
+
+        Built once per (camera, scale, margin, supersample) in a process (issue 19: a full-
+        resolution map takes most of a virtual rig's set-up): the last
+        :attr:`CACHE_SIZE` maps are kept and shared, their arrays read-only."""
+        key = (camera, float(scale), int(margin_px), supersample)
+        hit = _LENS_CACHE.pop(key, None)
+        if hit is None:
+            hit = cls._build(camera, scale, margin_px, supersample)
+            for a in (hit.map_x, hit.map_y, hit.K, hit.dist, hit.jac):
+                if a is not None:
+                    a.flags.writeable = False
+        _LENS_CACHE[key] = hit                          # most recently used last
+        while len(_LENS_CACHE) > cls.CACHE_SIZE:
+            _LENS_CACHE.pop(next(iter(_LENS_CACHE)))
+        return hit
+
+    #: Lens maps kept by :meth:`build` (a full-resolution one holds ~0.2 GB).
+    CACHE_SIZE = 2
+
+    @classmethod
+    def _build(cls, camera, scale: float, margin_px: int, supersample: int | None) -> LensMap:
         w, h = camera.size(scale)
         if supersample is None:
             ss = cls.DEFAULT_SUPERSAMPLE
@@ -83,15 +104,14 @@ class LensMap:
         # Ideal rays of every output pixel, computed in row blocks to bound memory.
         map_x = np.empty((h, w), np.float32)
         map_y = np.empty((h, w), np.float32)
-        xs = np.arange(w, dtype=np.float64)
         xy_max = np.zeros(2)
         rows = []
         block = max(1, 2_000_000 // w)
+        rays = _IdealRays(K, dist, w, h)
         for y0 in range(0, h, block):
             y1 = min(h, y0 + block)
-            vv, uu = np.meshgrid(np.arange(y0, y1, dtype=np.float64), xs, indexing="ij")
-            r = undistorted_rays(K, dist, uu, vv)[:, :2].reshape(y1 - y0, w, 2)
-            xy_max = np.maximum(xy_max, np.abs(r).reshape(-1, 2).max(axis=0))
+            r = rays.block(y0, y1)
+            xy_max = np.maximum(xy_max, [np.abs(r[..., 0]).max(), np.abs(r[..., 1]).max()])
             rows.append((y0, y1, r.astype(np.float32)))
         cw = 2 * int(math.ceil(xy_max[0] * f + margin_px))
         ch = 2 * int(math.ceil(xy_max[1] * f + margin_px))
@@ -178,6 +198,84 @@ class LensMap:
             self._taps = (taps(self.map_x.astype(np.float64), hx), taps(self.map_y.astype(np.float64), hy),
                           (0.25 / (hx * hy)).astype(np.float32))
         return self._taps
+
+
+_LENS_CACHE: dict[tuple, LensMap] = {}
+
+
+class _IdealRays:
+    """Ideal (undistorted) normalised rays (x, y) of every output pixel, as
+    :func:`glossrig.core.extraction.cylinder.undistorted_rays` gives them, without its cost on
+    24 MP (issue 19: 30 s of cv2.undistortPoints at full resolution): exact rays on a grid of
+    every :attr:`GRID`-th pixel, bilinear interpolation between them as the starting point,
+    then Newton's method on OpenCV's distortion model (k1 k2 p1 p2 k3; G. Bradski, A. Kaehler,
+    "Learning OpenCV", O'Reilly 2008, ch. 11) with its analytic Jacobian. The start is within
+    ~1e-7 of the root and Newton converges quadratically, so :attr:`ITERATIONS` steps reach
+    float64 rounding; pixels whose residual stays above :attr:`TOL` (none on the thesis lens)
+    are solved by cv2 as before. Other distortion models are left to cv2 throughout."""
+
+    GRID = 16
+    ITERATIONS = 2
+    TOL = 1e-12          # distorted normalised coordinates (~1e-8 px at full resolution)
+
+    def __init__(self, K, dist, w: int, h: int):
+        self.K, self.dist, self.w = K, np.asarray(dist, np.float64), w
+        self.newton = self.dist.size <= 5 and K[0, 1] == 0
+        if self.newton:
+            self.gx = np.unique(np.r_[np.arange(0, w, self.GRID), w - 1]).astype(np.float64)
+            self.gy = np.unique(np.r_[np.arange(0, h, self.GRID), h - 1]).astype(np.float64)
+            vv, uu = np.meshgrid(self.gy, self.gx, indexing="ij")
+            r = undistorted_rays(K, self.dist, uu, vv)
+            self.nodes = r[:, 0].reshape(vv.shape), r[:, 1].reshape(vv.shape)
+            u = np.arange(w, dtype=np.float64)
+            self.ix = np.clip(np.searchsorted(self.gx, u, side="right") - 1, 0, len(self.gx) - 2)
+            self.tx = (u - self.gx[self.ix]) / (self.gx[self.ix + 1] - self.gx[self.ix])
+
+    def block(self, y0: int, y1: int) -> np.ndarray:
+        """(y1 - y0, w, 2) rays of rows y0..y1-1."""
+        w = self.w
+        v = np.arange(y0, y1, dtype=np.float64)
+        if not self.newton:
+            vv, uu = np.meshgrid(v, np.arange(w, dtype=np.float64), indexing="ij")
+            return undistorted_rays(self.K, self.dist, uu, vv)[:, :2].reshape(y1 - y0, w, 2)
+        iy = np.clip(np.searchsorted(self.gy, v, side="right") - 1, 0, len(self.gy) - 2)
+        ty = ((v - self.gy[iy]) / (self.gy[iy + 1] - self.gy[iy]))[:, None]
+        start = []
+        for nodes in self.nodes:
+            col = nodes[iy] * (1 - ty) + nodes[iy + 1] * ty             # (rows, grid columns)
+            start.append(col[:, self.ix] * (1 - self.tx) + col[:, self.ix + 1] * self.tx)
+        x, y = start
+        K = self.K
+        xd = np.broadcast_to((np.arange(w, dtype=np.float64) - K[0, 2]) / K[0, 0], x.shape)
+        yd = np.broadcast_to(((v - K[1, 2]) / K[1, 1])[:, None], x.shape)
+        for _ in range(self.ITERATIONS):
+            (ex, ey), (j11, j12, j22) = self._residual(x, y, xd, yd, jacobian=True)
+            det = j11 * j22 - j12 * j12
+            x = x - (j22 * ex - j12 * ey) / det
+            y = y - (j11 * ey - j12 * ex) / det
+        ex, ey = self._residual(x, y, xd, yd)
+        out = np.stack([x, y], axis=-1)
+        bad = np.maximum(np.abs(ex), np.abs(ey)) > self.TOL
+        if bad.any():
+            rr, cc = np.nonzero(bad)
+            out[rr, cc] = undistorted_rays(self.K, self.dist, cc.astype(np.float64), v[rr])[:, :2]
+        return out
+
+    def _residual(self, x, y, xd, yd, jacobian: bool = False):
+        """distort(x, y) - (xd, yd) under OpenCV's model, and its Jacobian (J11, J12 = J21, J22)."""
+        k1, k2, p1, p2, k3 = np.r_[self.dist, np.zeros(5 - self.dist.size)]
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xy = x * y
+        ex = x * radial + 2 * p1 * xy + p2 * (r2 + 2 * x * x) - xd
+        ey = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * xy - yd
+        if not jacobian:
+            return ex, ey
+        d = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))                 # 2 d(radial)/d(r2)
+        j11 = radial + x * x * d + 2 * p1 * y + 6 * p2 * x
+        j12 = xy * d + 2 * p1 * x + 2 * p2 * y
+        j22 = radial + y * y * d + 6 * p1 * y + 2 * p2 * x
+        return (ex, ey), (j11, j12, j22)
 
 
 def render_array(scene, spp: int | None = None, seed: int = 0) -> np.ndarray:

@@ -23,11 +23,15 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from glossrig.twin.bsdf_plugin import PluginBSDF
+
 PLUGIN = "glossrig_rotated"
-_registered = False
 
 
-class RotatedBSDF(mi.BSDF):
+class RotatedBSDF(PluginBSDF):
+    PLUGIN = PLUGIN
+    TRAVERSED = (("tangent_rotation", False),)
+
     def __init__(self, props):
         mi.BSDF.__init__(self, props)
         nested = [props[k] for k in props.keys() if isinstance(props[k], mi.BSDF)]
@@ -65,18 +69,8 @@ class RotatedBSDF(mi.BSDF):
     def eval_diffuse_reflectance(self, si, active=True):
         return self.nested.eval_diffuse_reflectance(self._si(si), active)
 
-    def traverse(self, callback):
-        callback.put("tangent_rotation", self.tangent_rotation, mi.ParamFlags.NonDifferentiable)
-
-    def parameters_changed(self, keys):
-        pass
-
     def to_string(self):
         return f"RotatedBSDF[tangent_rotation={self.tangent_rotation}, nested={self.nested}]"
 
 
-def register() -> None:
-    global _registered
-    if not _registered:
-        mi.register_bsdf(PLUGIN, lambda props: RotatedBSDF(props))
-        _registered = True
+register = RotatedBSDF.register

@@ -29,10 +29,19 @@ black (below saturation), sigma_y^2 = mu_y / K + sigma_r^2 / K^2 + 1/12, the
 last term being the quantisation noise of rounding to integer DN.
 
 Simplification (adjustable later): read noise is one figure in electrons at
-every ISO. Shot noise is drawn exactly (``Generator.poisson``); means above
-twice the full well are first capped there, which changes nothing (such a
-pixel is clipped at the full well in step 4 with probability 1 - 1e-4000)
-but keeps arbitrarily bright highlights (the sun on a mirror) finite and fast.
+every ISO. Shot noise is drawn exactly. :meth:`SensorModel.expose` runs steps
+3-7 (and 9) in compiled Dr.Jit code (:mod:`glossrig.twin.sensor_drjit`:
+Hoermann's PTRS rejection sampler for lambda >= 10 and CDF inversion below,
+Box-Muller read noise, per-pixel PCG32 streams keyed by one 64-bit draw from
+the frame's generator); a pixel whose mean exceeds the full well by so much
+that it stays below it with probability < exp(-50) is set to the full well
+without a draw. :meth:`SensorModel.prepare` does step 1 once for all the
+exposures of a sequence (issue 19; validation/twin/benchmark.md has the
+speed-up). :meth:`SensorModel.expose_reference` is the former NumPy path
+(``Generator.poisson``; means above twice the full well capped there, which
+changes nothing as such a pixel is clipped at the full well in step 4 with
+probability 1 - 1e-4000), kept as the reference: same statistics, other draws
+(tests/test_sensor_fast.py).
 
 Effects: ``expose(..., effects=...)`` takes one object or a sequence of
 objects. For each stage, in order, every effect that has a method of the
@@ -49,11 +58,13 @@ place and return it). ``ctx`` is a :class:`SensorContext` with the exposure,
 ISO, f-number, frame index, the frame's random generator and the sensor.
 
 Memory: a full frame is 6032 x 4032; the model holds one float32 (H, W)
-work array besides the caller's radiance, and draws noise in blocks of rows.
+work array (two with the fast path) besides the caller's radiance, and draws
+noise in blocks (of rows, or of :data:`glossrig.twin.sensor_drjit.BLOCK` pixels).
 """
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -64,7 +75,7 @@ from glossrig.core.errors import InputError
 
 from .dng import XYZ_TO_SRGB
 
-__all__ = ["SensorModel", "SensorContext", "SensorEffect", "frame_rng", "image_rng"]
+__all__ = ["SensorModel", "SensorContext", "SensorEffect", "PreparedRadiance", "frame_rng", "image_rng"]
 
 #: Rows of the mosaic whose noise is drawn at once (bounds the float64/int64
 #: temporaries of Generator.poisson). Fixed: it is part of what a seed means.
@@ -153,6 +164,14 @@ def _effect_list(effects) -> list:
     if isinstance(effects, (list, tuple)):
         return list(effects)
     return [effects]
+
+
+@dataclass(frozen=True)
+class PreparedRadiance:
+    """A radiance image with its exposure-independent sensor input (:meth:`SensorModel.prepare`)."""
+
+    radiance: np.ndarray
+    rate: Any = None            # glossrig.twin.sensor_drjit.Rate, or None without Dr.Jit
 
 
 @dataclass(frozen=True)
@@ -284,27 +303,86 @@ class SensorModel:
             for j in range(2):
                 dn[i::2, j::2] += b[i, j]
 
+    def prepare(self, radiance_rgb: np.ndarray) -> PreparedRadiance:
+        """``radiance_rgb`` made ready for several :meth:`expose` calls (a sequence's 18
+        exposures of one render): step 1 per unit exposure, t (11/N)^2 gain = 1, computed and
+        handed to Dr.Jit once (issue 19: exposure-independent work done once per sequence).
+        :meth:`expose` takes it in place of the radiance; the radiance must not change
+        while it is in use."""
+        rate = None
+        if _fast_noise_available():
+            from .sensor_drjit import Rate
+
+            rate = Rate(self.expected_electrons(radiance_rgb, 1.0, 11.0))
+        return PreparedRadiance(radiance=np.asarray(radiance_rgb), rate=rate)
+
     def expose(self, radiance_rgb: np.ndarray, exposure_s: float, iso: float, aperture: float,
                rng: np.random.Generator, gain: float = 1.0, effects: Any = None,
                frame_index: int = 0) -> np.ndarray:
         """One raw exposure: uint16 (H, W) CFA mosaic (steps 1-9 of the
         module docstring). ``rng`` supplies all randomness (see
         :func:`frame_rng` for per-frame generators); the same generator state
-        gives the same mosaic."""
+        gives the same mosaic. Steps 3-7 (and 9 without ``post_dn`` effects) run
+        as one Dr.Jit kernel (:mod:`glossrig.twin.sensor_drjit`: exact Poisson and
+        normal draws from per-pixel streams seeded by one 64-bit draw from ``rng``);
+        without Dr.Jit's LLVM backend, as :meth:`expose_reference`."""
+        return self._expose(radiance_rgb, exposure_s, iso, aperture, rng, gain, effects, frame_index, fast=True)
+
+    def expose_reference(self, radiance_rgb: np.ndarray, exposure_s: float, iso: float, aperture: float,
+                         rng: np.random.Generator, gain: float = 1.0, effects: Any = None,
+                         frame_index: int = 0) -> np.ndarray:
+        """:meth:`expose` with the NumPy noise step (``Generator.poisson`` and
+        ``standard_normal`` in blocks of :data:`BLOCK_ROWS` rows): the same model,
+        other random draws. The reference the fast path is tested and benchmarked
+        against (tests/test_sensor.py, validation/twin/benchmark.py); about 10x slower."""
+        return self._expose(radiance_rgb, exposure_s, iso, aperture, rng, gain, effects, frame_index, fast=False)
+
+    def _expose(self, radiance_rgb, exposure_s, iso, aperture, rng, gain, effects, frame_index,
+                fast: bool) -> np.ndarray:
         if not isinstance(rng, np.random.Generator):
             raise InputError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
         exposure_s, iso, aperture, gain = self._check_exposure(exposure_s, iso, aperture, gain)
         effs = _effect_list(effects)
         ctx = SensorContext(exposure_s=exposure_s, iso=iso, aperture=aperture, frame_index=int(frame_index),
                             rng=rng, sensor=self)
-        e = self.expected_electrons(radiance_rgb, exposure_s, aperture, gain)
-        if effs:
-            e = _stage(effs, "pre_electrons", e, ctx)
-            _check_finite(e, "expected electrons after pre_electrons effects")
+        prepared = radiance_rgb if isinstance(radiance_rgb, PreparedRadiance) else None
+        pre = any(getattr(eff, "pre_electrons", None) is not None for eff in effs)
+        post = any(getattr(eff, "post_dn", None) is not None for eff in effs)
+        fast = fast and _fast_noise_available()
+        if fast and prepared is not None and prepared.rate is not None and not pre:
+            src, scale = prepared.rate, (11.0 / aperture) ** 2 * exposure_s * gain      # step 1 in the kernel
+        else:
+            e = self.expected_electrons(prepared.radiance if prepared is not None else radiance_rgb, exposure_s,
+                                        aperture, gain)
+            if pre:
+                e = _stage(effs, "pre_electrons", e, ctx)
+                _check_finite(e, "expected electrons after pre_electrons effects")
+            src, scale = e, 1.0
+        inv_k = 1.0 / self.conversion_gain(iso)
+        if fast:
+            from .sensor_drjit import noise_dn
+
+            seed = int(rng.integers(0, 2 ** 64, dtype=np.uint64))
+            e = noise_dn(src, seed=seed, dark_e=self.dark_current_e_s * exposure_s, full_well_e=self.full_well_e,
+                         read_e=self.read_noise_e, inv_k=inv_k, black_2x2=self.black_2x2(),
+                         white=None if post else self.white_level, scale=scale)
+            rounded = not post
+        else:
+            self._noise_reference(e, rng, exposure_s, inv_k)
+            rounded = False
+        if post:
+            e = _stage(effs, "post_dn", e, ctx)
+        if not rounded:
+            np.rint(e, out=e)
+            np.clip(e, 0, self.white_level, out=e)
+        return e.astype(np.uint16)
+
+    def _noise_reference(self, e: np.ndarray, rng: np.random.Generator, exposure_s: float, inv_k: float) -> None:
+        """Steps 3-7 in NumPy, in place: expected electrons ``e`` -> DN with black level."""
         dark = np.float32(self.dark_current_e_s * exposure_s)
         full = np.float32(self.full_well_e)
-        inv_k = np.float32(1.0 / self.conversion_gain(iso))
         read = np.float32(self.read_noise_e)
+        inv_k32 = np.float32(inv_k)
         for r0 in range(0, e.shape[0], BLOCK_ROWS):
             blk = e[r0:r0 + BLOCK_ROWS]
             blk += dark
@@ -314,13 +392,8 @@ class SensorModel:
                 noise = rng.standard_normal(electrons.shape, dtype=np.float32)
                 noise *= read
                 electrons += noise
-            np.multiply(electrons, inv_k, out=blk)
+            np.multiply(electrons, inv_k32, out=blk)
         self._add_black(e)
-        if effs:
-            e = _stage(effs, "post_dn", e, ctx)
-        np.rint(e, out=e)
-        np.clip(e, 0, self.white_level, out=e)
-        return e.astype(np.uint16)
 
     def describe(self) -> str:
         return (f"{cfa_string(self.cfa)} {self.bits}-bit, black {self.black_level}, white {self.white_level}, "
@@ -344,6 +417,22 @@ def _check_finite(e: np.ndarray, what: str) -> None:
         raise InputError(f"{what} holds NaN or infinite values")
     if lo < 0:
         raise InputError(f"{what} holds negative values (min {lo:g})")
+
+
+def _fast_noise_available() -> bool:
+    """Dr.Jit's LLVM backend can run the noise kernel; warns once where it cannot."""
+    from . import sensor_drjit
+
+    if sensor_drjit.available():
+        return True
+    if not _WARNED:
+        _WARNED.append(True)
+        warnings.warn("Dr.Jit's LLVM backend is unavailable (libLLVM 19 missing): the twin's sensor model uses its "
+                      "slow NumPy reference path (other random draws, the same statistics)", RuntimeWarning, stacklevel=3)
+    return False
+
+
+_WARNED: list[bool] = []
 
 
 def _shot(rng: np.random.Generator, lam: np.ndarray, cap: float) -> np.ndarray:

@@ -63,6 +63,8 @@ class VirtualRig:
         self._vignette = self.effects.vignetting_factor(self.lens.size, self.lens.K)
         self._hot = self.effects.hot_pixel_mask(self.lens.size, seed)
         self._cache: dict[tuple, np.ndarray] = {}
+        self._hooks: _DnHooks | None = None
+        self._prepared = None       # the sensor input of the last single-LED render shot (SensorModel.prepare)
         self.clamped_pixels: dict[tuple, int] = {}
         self.rotation = 0.0
         self.on: list[int] = []
@@ -101,10 +103,13 @@ class VirtualRig:
         if at_s is not None:
             self.clock_s = float(at_s)
         rng = image_rng(self.seed, **image) if image is not None else frame_rng(self.seed, self.frame)
-        radiance = self.image_radiance(self.on, rng)
+        radiance, gain = self._shot_radiance(self.on, rng)
         cam = self.rig.camera
-        hooks = _DnHooks(self.effects, self._hot, cam)
-        mosaic = self.sensor.expose(radiance, exposure_s, iso, aperture, rng, effects=hooks, frame_index=self.frame)
+        if self._hooks is None:
+            self._hooks = _DnHooks(self.effects, self._hot, cam)
+        hooks = self._hooks if self._hooks.active else None
+        mosaic = self.sensor.expose(radiance, exposure_s, iso, aperture, rng, gain=gain, effects=hooks,
+                                    frame_index=self.frame)
         when = self.now()
         digest = write_dng(path, mosaic, cfa=cam.cfa, black_level=cam.black_level, white_level=cam.white_level,
                            exposure_s=exposure_s, iso=iso, aperture=aperture, time=when, overwrite=overwrite)
@@ -149,24 +154,48 @@ class VirtualRig:
                 # whichever rotation this process happened to render it at (resume-stable truth)
                 self.clamped_pixels[key] = int(neg.any(axis=-1).sum())
                 np.maximum(img, 0.0, out=img)
-            f = self.effects.emission_factor(led_id, pos, self.points_mm())
-            if f is not None:
-                img *= f[..., None]
+            if self.effects.get("led_emission") > 0:      # the surface points only where they are used
+                f = self.effects.emission_factor(led_id, pos, self.points_mm())
+                if f is not None:
+                    img *= f[..., None]
             if self._vignette is not None:
                 img *= self._vignette[..., None]
             self._cache[key] = img
         return self._cache[key]
 
     def image_radiance(self, led_ids, rng: np.random.Generator) -> np.ndarray:
+        """Radiance (h, w, 3) of the image with ``led_ids`` on: each LED's render times its
+        gain (jitter and drift, drawn from ``rng``) plus its stray light."""
         w, h = self.lens.size
         out = np.zeros((h, w, 3), np.float32)
         for i in led_ids:
             g = self.effects.led_gain(i, self.clock_s, rng)
             out += g * self.led_radiance(i)
-            s = self.effects.stray_radiance(self.intensity, float(np.linalg.norm(self.led_positions[i])))
-            if s:
-                out += g * s * np.asarray(LED_RGB, np.float32) * (self._vignette[..., None] if self._vignette is not None else 1.0)
+            s = self._stray(i)
+            if s is not None:
+                out += g * s
         return out
+
+    def _stray(self, led_id: int):
+        """LED ``led_id``'s stray-light radiance (broadcastable to (h, w, 3)), or None."""
+        s = self.effects.stray_radiance(self.intensity, float(np.linalg.norm(self.led_positions[led_id])))
+        if not s:
+            return None
+        return s * np.asarray(LED_RGB, np.float32) * (self._vignette[..., None] if self._vignette is not None else 1.0)
+
+    def _shot_radiance(self, led_ids, rng: np.random.Generator):
+        """(radiance, gain) whose product is :meth:`image_radiance` (the same draws from
+        ``rng``): a single LED without stray light is its cached render, prepared for the
+        sensor once for all the exposures of its sequence, and its gain, which the sensor
+        model applies in its own pass (no (h, w, 3) copy per exposure, issue 19)."""
+        ids = list(led_ids)
+        if len(ids) == 1 and self._stray(ids[0]) is None:
+            rad = self.led_radiance(ids[0])
+            if self._prepared is None or self._prepared.radiance is not rad:
+                self._prepared = None                    # one at a time: a sequence is one LED's
+                self._prepared = self.sensor.prepare(rad)
+            return self._prepared, self.effects.led_gain(ids[0], self.clock_s, rng)
+        return self.image_radiance(ids, rng), 1.0
 
     # --- truth ------------------------------------------------------------------
     def truth(self) -> dict:
@@ -196,13 +225,19 @@ class VirtualRig:
 
 class _DnHooks:
     """Adapter giving the sensor model (``post_dn`` stage) the effects that act on
-    the raw signal: nonlinearity, black-level offset, hot pixels."""
+    the raw signal: nonlinearity, black-level offset, hot pixels. ``active``: whether
+    any of them is on (without, the sensor model is given no hooks and rounds in its
+    fast kernel)."""
 
     def __init__(self, effects: EffectState, hot, camera):
         self.effects, self.hot, self.camera = effects, hot, camera
+        self.active = hot is not None or effects.get("sensor_nonlinearity") > 0 \
+            or effects.get("black_level_offset") != 0
+        self._black: np.ndarray | None = None
 
     def post_dn(self, dn, ctx):
         h, w = dn.shape
-        black = np.tile(ctx.sensor.black_2x2().astype(np.float32), (h // 2, w // 2))
-        return self.effects.apply_dn(dn, black, self.camera.white_level, ctx.exposure_s,
-                                     ctx.sensor.conversion_gain(ctx.iso), self.hot).astype(np.float32)
+        if self._black is None or self._black.shape != dn.shape:
+            self._black = np.tile(ctx.sensor.black_2x2().astype(np.float32), (h // 2, w // 2))
+        return self.effects.apply_dn(dn, self._black, self.camera.white_level, ctx.exposure_s,
+                                     ctx.sensor.conversion_gain(ctx.iso), self.hot).astype(np.float32, copy=False)

@@ -24,12 +24,16 @@ import drjit as dr
 import mitsuba as mi
 
 from glossrig.core.models.ward import EXPONENT_CAP
+from glossrig.twin.bsdf_plugin import PluginBSDF
 
 PLUGIN = "glossrig_ward"
-_registered = False
 
 
-class WardBSDF(mi.BSDF):
+class WardBSDF(PluginBSDF):
+    PLUGIN = PLUGIN
+    TRAVERSED = (("rho_d", True), ("rho_s", True), ("alpha_x", True), ("alpha_y", True), ("lobe_rotation", False),
+                 ("tangent_rotation", False))
+
     def __init__(self, props):
         mi.BSDF.__init__(self, props)
 
@@ -125,23 +129,8 @@ class WardBSDF(mi.BSDF):
         ok = active & (wi.z > 0) & (wo.z > 0) & (pdf > 0)
         return bs, dr.select(ok, value / dr.maximum(pdf, 1e-12), mi.Color3f(0.0))
 
-    def traverse(self, callback):
-        callback.put("rho_d", self.rho_d, mi.ParamFlags.Differentiable)
-        callback.put("rho_s", self.rho_s, mi.ParamFlags.Differentiable)
-        callback.put("alpha_x", self.alpha_x, mi.ParamFlags.Differentiable)
-        callback.put("alpha_y", self.alpha_y, mi.ParamFlags.Differentiable)
-        callback.put("lobe_rotation", self.lobe_rotation, mi.ParamFlags.NonDifferentiable)
-        callback.put("tangent_rotation", self.tangent_rotation, mi.ParamFlags.NonDifferentiable)
-
-    def parameters_changed(self, keys):
-        pass
-
     def to_string(self):
         return f"WardBSDF[rho_d={self.rho_d}, rho_s={self.rho_s}, alpha=({self.alpha_x}, {self.alpha_y})]"
 
 
-def register() -> None:
-    global _registered
-    if not _registered:
-        mi.register_bsdf(PLUGIN, lambda props: WardBSDF(props))
-        _registered = True
+register = WardBSDF.register

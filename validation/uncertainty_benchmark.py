@@ -1,7 +1,7 @@
 """What the uncertainty budget adds to one material's fit time (issue 15; target < 50 %).
 
     python -m validation.uncertainty_benchmark SAMPLES.parquet [--repeats 3] [--channels luminance,r,g,b] \
-        [--point]
+        [--point] [--calibration-draws 24] [--extract]
 
 Fits the samples table (``glossrig fit``'s defaults: every channel, the footprint-averaged
 model where the table allows it) with and without the budget
@@ -12,6 +12,15 @@ as the fits record it (``uncertainty.budget.time_s`` summed over the channels), 
 JSON line with the numbers. Both fits give the same parameters (checked). ``--point``
 also times the point-model fit (``footprint=False``, with its budget) in the same
 rotation, for what the footprint-averaged model costs.
+
+``--calibration-draws N`` (N >= 2) adds the calibration component as ``glossrig fit``
+computes it by default (:mod:`glossrig.core.fitting.calibration_uncertainty`: the poses
+solved again from the capture's calibration images, then N Monte Carlo draws), with
+the camera, lamps and capture the table's provenance names, timed in the same rotation
+as ``budget + calibration``. ``--extract`` also times, once in the same run, the
+extraction that made the table (``extract_samples`` on the captures and calibration of
+its provenance), so the ratio is also given against the whole processing
+(extraction + fit) of the material.
 """
 from __future__ import annotations
 
@@ -30,26 +39,36 @@ def main(argv=None) -> dict:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--channels", default="luminance,r,g,b")
     ap.add_argument("--point", action="store_true", help="also time the point-model fit")
+    ap.add_argument("--calibration-draws", type=int, default=0,
+                    help="also time the budget with its calibration component of N draws (default 0: not)")
+    ap.add_argument("--extract", action="store_true", help="also time the extraction once (see the docstring)")
     a = ap.parse_args(argv)
     df = read_samples(a.samples)
     channels = a.channels.split(",")
-    times: dict = {True: [], False: [], "point": []}
+    times: dict = {True: [], False: [], "point": [], "calibration": []}
+    cpu: dict = {True: [], False: [], "point": [], "calibration": []}     # this process's CPU time
     budget_own = []
     params = {}
+    files = _provenance_files(df) if (a.calibration_draws or a.extract) else {}
+    extract_s = _time_extract(files) if a.extract else None
     for k in range(a.repeats + 1):
-        for budget in (False, True) + (("point",) if a.point else ()):
-            t0 = time.perf_counter()
+        for budget in (False, True) + (("point",) if a.point else ()) + \
+                (("calibration",) if a.calibration_draws else ()):
+            t0, c0 = time.perf_counter(), time.process_time()
             if budget == "point":
                 fit_samples(df, channels=channels, footprint=False)
-                if k:
-                    times["point"].append(time.perf_counter() - t0)
-                continue
-            m = fit_samples(df, channels=channels, budget=budget)
-            dt = time.perf_counter() - t0
-            params[budget] = {c: f.params for c, f in m.fits.items()}
+            elif budget == "calibration":
+                _calibration(df, files, channels, a.calibration_draws)
+            else:
+                m = fit_samples(df, channels=channels, budget=budget)
+                params[budget] = {c: f.params for c, f in m.fits.items()}
+            dt, dc = time.perf_counter() - t0, time.process_time() - c0
             if k == 0:
                 continue            # warm-up (imports, caches)
             times[budget].append(dt)
+            cpu[budget].append(dc)
+            if budget in ("point", "calibration"):
+                continue
             if budget:
                 budget_own.append(sum(f.uncertainty["budget"]["time_s"] for f in m.fits.values()))
     assert params[True] == params[False], "the budget changed the fit"
@@ -67,8 +86,69 @@ def main(argv=None) -> dict:
     if a.point:
         print(f"the point-model fit (with its budget): {res['median_point_s']:.2f} s; the footprint-averaged fit "
               f"with its budget takes {t_on / res['median_point_s']:.2f} times as long")
+    if a.calibration_draws:
+        t_cal = statistics.median(times["calibration"])
+        res.update({"calibration_draws": a.calibration_draws, "calibration_s": times["calibration"],
+                    "median_calibration_s": t_cal, "ratio_with_calibration": (t_on + t_cal) / t_off})
+        print(f"the calibration component ({a.calibration_draws} draws, poses solved again): {t_cal:.2f} s; fit with "
+              f"the whole budget {t_on + t_cal:.2f} s, ratio {(t_on + t_cal) / t_off:.3f} to the fit without it")
+        c_off, c_on, c_cal = (statistics.median(cpu[x]) for x in (False, True, "calibration"))
+        res.update({"cpu_s": {str(k): v for k, v in cpu.items()}, "cpu_ratio_with_calibration": (c_on + c_cal) / c_off})
+        print(f"CPU time of this process (medians): fit {c_off:.2f} s without the budget, {c_on:.2f} s with it, "
+              f"calibration component {c_cal:.2f} s: ratio {(c_on + c_cal) / c_off:.3f}")
+    if extract_s is not None:
+        res["extract_s"] = extract_s
+        base = extract_s + t_off
+        full = extract_s + t_on + (res.get("median_calibration_s") or 0.0)
+        res["ratio_processing"] = full / base
+        print(f"extraction {extract_s:.2f} s (once); processing (extraction + fit) {base:.2f} s without the budget, "
+              f"{full:.2f} s with it: ratio {full / base:.3f} (+{100 * (full / base - 1):.1f} %)")
     print(json.dumps(res))
     return res
+
+
+def _provenance_files(df) -> dict:
+    """The sample and reference captures, camera.json and lamps.json that the table's
+    provenance records (``glossrig extract``)."""
+    prov = (df.attrs.get("provenance") or {}).get("inputs") or {}
+    out = {}
+    for k in ("sample", "reference", "camera", "lamps"):
+        e = prov.get(k) or {}
+        out[k] = e.get("resolved") or e.get("path")
+    missing = [k for k, v in out.items() if not v]
+    if missing:
+        raise SystemExit(f"the samples table's provenance names no {', '.join(missing)}")
+    out["albedo"] = ((df.attrs.get("provenance") or {}).get("options") or {}).get("reference_albedo", 0.8)
+    return out
+
+
+def _time_extract(files: dict) -> float:
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.calibration.lamps import load_lamps
+    from glossrig.core.extraction.extract import extract_samples
+
+    t0 = time.perf_counter()
+    extract_samples(files["sample"], files["reference"], load_camera(files["camera"]), load_lamps(files["lamps"]),
+                    albedo=float(files["albedo"]))
+    return time.perf_counter() - t0
+
+
+def _calibration(df, files: dict, channels, draws: int) -> None:
+    """What ``glossrig fit`` adds for the calibration component, given the fits' parameters
+    (taken from a point-model fit once; the component's cost does not depend on them)."""
+    from glossrig.core.fitting import calibration_uncertainty as cu
+
+    global _PARAMS
+    if _PARAMS is None:
+        from glossrig.core.fitting.fit import fit_samples
+
+        _PARAMS = {c: f.params for c, f in fit_samples(df, channels=channels, footprint=False,
+                                                          budget=False).fits.items()}
+    cal = cu.load_inputs(files["camera"], files["lamps"], files["sample"], sorted(df["rotation"].unique()))
+    cu.calibration_component(df, _PARAMS, cal, n_draws=draws)
+
+
+_PARAMS = None
 
 
 if __name__ == "__main__":

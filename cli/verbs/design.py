@@ -9,8 +9,11 @@ sub-verbs:
   optimise   sweep LED mounts and sample rotations (Dask: a local cluster by
              default, --scheduler ADDRESS for an existing one, --workers 0 for
              one process) and write the best design as a new rig file
-  errors     expected extended-Ward parameter errors of a rig's design for
-             target materials (Fisher information, glossrig.core.design.fisher)
+  errors     expected extended-Ward parameter uncertainty of a rig's design for
+             target materials: the combined budget (noise, model, calibration,
+             footprint; glossrig.core.design.error_budget) as
+             "expected_uncertainty", and the noise-only Fisher bound
+             (glossrig.core.design.fisher) as "expected_errors"
 
 examples:
   glossrig design coverage --rig scenes/thesis_rig.toml --out validation/design/coverage
@@ -199,8 +202,26 @@ def add_errors_arguments(p) -> None:
                    help="residual LED gain per (LED, rotation) sequence after neighbour correction and patch "
                         "normalisation, relative standard deviation, a nuisance parameter common to the "
                         "sequence's pixels (default 0: none; use with --noise hdr:0)")
+    p.add_argument("--model-gain", type=float, default=None, metavar="REL",
+                   help="budget: residual relative gain of one LED x rotation image (default: "
+                        "glossrig.core.design.error_budget.GAIN_REL, 0.005)")
+    p.add_argument("--lamp-std", type=float, default=None, metavar="MM",
+                   help="budget: lamp position standard uncertainty per axis, mm (default 0.5, what "
+                        "`calibrate lamps` states)")
+    p.add_argument("--pose-rot", type=float, default=None, metavar="DEG",
+                   help="budget: sample pose rotation uncertainty per axis, degrees (default 0.05 x 0.25 / --scale)")
+    p.add_argument("--pose-t", type=float, default=None, metavar="MM",
+                   help="budget: sample pose translation uncertainty per axis, mm (default 0.15 x 0.25 / --scale)")
+    p.add_argument("--led-aperture", type=float, default=None, metavar="RAD",
+                   help="budget: the LEDs' angular diameter seen from the sample (default 0.0025; 0 for points)")
     p.add_argument("--out", default=None, help="JSON file to write (default: print)")
     add_force_option(p, "an existing --out file")
+
+
+def _nonnegative(v, name):
+    if v is not None and not (math.isfinite(v) and v >= 0):
+        raise InputError(f"{name} must be a number >= 0, got {v!r}")
+    return v
 
 
 def run_errors(args) -> int:
@@ -213,13 +234,29 @@ def run_errors(args) -> int:
     materials = D.parse_materials(args.materials)
     leds = rig.select_leds(args.leds)
     rots = _floats(args.rotations, "--rotations") if args.rotations else list(rig.sample_rotations)
+    from glossrig.core.design import error_budget as EB
+
+    for v, name in ((args.model_gain, "--model-gain"), (args.lamp_std, "--lamp-std"), (args.pose_rot, "--pose-rot"),
+                    (args.pose_t, "--pose-t"), (args.led_aperture, "--led-aperture")):
+        _nonnegative(v, name)
     errs = D.design_errors(rig, materials, rotations=rots, led_ids=leds, scale=args.scale, noise=args.noise,
                            gain_rel=args.gain_noise)
+    opt = {k: v for k, v in (("gain_rel", args.model_gain), ("lamp_std_mm", args.lamp_std),
+                             ("pose_rot_deg", args.pose_rot), ("pose_t_mm", args.pose_t),
+                             ("led_aperture", args.led_aperture)) if v is not None}
+    budget = EB.design_budget(rig, materials, rotations=rots, led_ids=leds, scale=args.scale, noise=args.noise,
+                              **opt)
     doc = {"rig": str(rig.path), "leds": leds, "rotations_deg": rots, "scale": args.scale, "noise": args.noise,
            "gain_noise": args.gain_noise,
+           "expected_uncertainty": budget,
+           "expected_uncertainty_kind": "combined standard uncertainty (noise, model, calibration, footprint; "
+                                        "glossrig.core.design.error_budget, its error model under 'stated')",
            "method": "Fisher information (Cramer-Rao bound), glossrig.core.design.fisher",
            "stderr_kind": "noise-only (the --noise model and --gain-noise; excludes calibration and model error)",
            "expected_errors": {lb: e.to_json() for lb, e in errs.items()}}
+    say = _log(args.quiet)
+    if say:
+        say("expected uncertainty (combined; the noise-only figure is expected_errors):\n" + EB.budget_text(budget))
     text = json.dumps(doc, indent=2) + "\n"
     if args.out:
         Path(args.out).write_text(text)
@@ -241,7 +278,7 @@ SUBVERBS = (
              add_coverage_arguments, run_coverage),
     _subverb("optimise", "optimise LED mounts and sample rotations; write a new rig file (thesis 9.1)",
              add_optimise_arguments, run_optimise),
-    _subverb("errors", "expected Ward-parameter errors of a rig from the Fisher information",
-             add_errors_arguments, run_errors),
+    _subverb("errors", "expected Ward-parameter uncertainty of a rig: the combined budget (noise, model, "
+             "calibration, footprint) and the noise-only Fisher bound", add_errors_arguments, run_errors),
     SubVerb.from_module("exposures", _design_exposures, description=_design_exposures.HELP),
 )

@@ -26,6 +26,15 @@ command plus --resume: the LEDs whose recorded inputs match are reused, the rest
 are measured, and the table equals an uninterrupted run's. Without --resume an
 earlier work folder is discarded. OUT.partial/ is removed once OUT is written.
 
+With --follow the capture SAMPLE_DIR may still be being taken (glossrig capture or
+glossrig simulate writing it; the reference must be complete): each LED of each
+rotation is measured as soon as the manifest lists its calibration image and all its
+planned sequence files, the rest when the capture is marked complete, so the table is
+written moments after the last exposure and equals a plain extract of the finished
+capture (glossrig.core.extraction.follow). Units are kept in OUT.follow/. If no new
+image arrives for --idle-timeout seconds (an interrupted capture) it stops with exit
+status 2: resume the capture and rerun with --follow --resume, which reuses them.
+
 The table records its provenance in its Parquet schema metadata (key
 glossrig.provenance; pyarrow.parquet.read_schema(OUT).metadata): the paths and
 sha256 of both manifests (each lists every raw file's sha256), of the rig files,
@@ -37,6 +46,7 @@ from __future__ import annotations
 import argparse
 
 from glossrig.cli.outputs import add_force_option, prepare_output
+from glossrig.core.errors import InputError
 
 HELP = "extract BRDF samples from a sample capture and a diffuse reference capture"
 
@@ -55,6 +65,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run: reuse the LEDs already measured in OUT.partial/ when their "
                         "recorded inputs match")
+    p.add_argument("--follow", action="store_true",
+                   help="SAMPLE_DIR is still being captured: measure each LED as soon as its files are recorded and "
+                        "write the table when the capture completes")
+    p.add_argument("--idle-timeout", type=float, default=None, metavar="S",
+                   help="with --follow: stop (exit 2, resumable) when no new image has arrived for S seconds "
+                        "(default 900)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="processes measuring LEDs at once (default: every usable core; 1: one process); the "
+                        "table is the same for any number")
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -83,18 +102,35 @@ def run(args) -> int:
     from glossrig.core.samples import write_samples
 
     resume = getattr(args, "resume", False)
+    follow = getattr(args, "follow", False)
+    idle = getattr(args, "idle_timeout", None)
+    if idle is not None and not follow:
+        raise InputError("--idle-timeout applies to --follow only")
+    if idle is not None and not idle > 0:
+        raise InputError(f"--idle-timeout must be > 0 seconds, got {idle}")
     prepare_output(args.out, args.force, resume=resume)
     if args.plots:
         prepare_output(args.plots, args.force, kind="folder", resume=resume)
     cam = load_camera(args.camera)
     lamps = load_lamps(args.lamps)
-    check_compatible(args.sample_dir, args.reference)
-    # the stored units are measurements: the albedo (applied after them) is not among their inputs
-    fp = measurement_fingerprint(args.sample_dir, args.reference, cam, lamps, estimator=args.estimator)
-    store = WorkStore(work_folder_for(args.out), fp, resume=resume)
-    df = extract_samples(args.sample_dir, args.reference, cam, lamps, albedo=args.reference_albedo,
-                         estimator=args.estimator, progress=not args.no_progress, plots=args.plots, store=store)
+    if follow:
+        from glossrig.core.extraction.follow import IDLE_TIMEOUT_S, follow_extract
+
+        df, stores = follow_extract(args.sample_dir, args.reference, cam, lamps, args.out,
+                                    albedo=args.reference_albedo, estimator=args.estimator, resume=resume,
+                                    idle_timeout_s=IDLE_TIMEOUT_S if idle is None else idle,
+                                    progress=not args.no_progress, plots=args.plots,
+                                    workers=getattr(args, "workers", None))
+    else:
+        check_compatible(args.sample_dir, args.reference)
+        # the stored units are measurements: the albedo (applied after them) is not among their inputs
+        fp = measurement_fingerprint(args.sample_dir, args.reference, cam, lamps, estimator=args.estimator)
+        stores = [WorkStore(work_folder_for(args.out), fp, resume=resume)]
+        df = extract_samples(args.sample_dir, args.reference, cam, lamps, albedo=args.reference_albedo,
+                             estimator=args.estimator, progress=not args.no_progress, plots=args.plots,
+                             store=stores[0], workers=getattr(args, "workers", None))
     write_samples(df, Path(args.out), provenance=_provenance(args))
-    store.remove()
+    for store in stores:
+        store.remove()
     print(f"{len(df)} BRDF samples written to {args.out}")
     return 0

@@ -23,8 +23,14 @@ and exclude the calibration and model error; each channel says so in
 per parameter the combined standard uncertainty, a 95 % interval and the
 components noise, model (misfit, cluster-robust over LED x rotation blocks),
 footprint (what the model leaves of the footprint, with the LED's aperture)
-and calibration (from --calibration-uncertainty; omitted, and said so, without
-it); see glossrig.core.fitting.uncertainty. The printed summary shows the budget.
+and calibration (Monte Carlo over draws of the camera - intrinsics and distortion
+drawn together by re-running its calibration on corners moved by its own
+reprojection RMS -, the poses, the lamp positions and the reference albedo, with
+the files the samples table's provenance names or --camera/--lamps/--capture;
+--calibration-draws 0 leaves it out and the budget says so; or given directly
+with --calibration-uncertainty); see glossrig.core.fitting.uncertainty and
+glossrig.core.fitting.calibration_uncertainty. The printed summary shows the
+budget table after the noise-only standard errors.
 
 fit.json's "provenance" records the samples file (path, resolved path, sha256)
 with the table's own provenance (captures, calibrations, extract options), the

@@ -37,7 +37,7 @@ import tifffile
 from glossrig.core.calibration.demosaic import CHANNELS, cfa_array, cfa_string, channel_index, demosaic, demosaic_thesis
 from glossrig.core.errors import InputError
 
-__all__ = ["RawFrame", "ExifInfo", "read_raw", "read_exif", "linearize", "linearize_mosaic", "even_crop",
+__all__ = ["RawFrame", "ExifInfo", "read_raw", "read_exif", "linearize", "linearize_mosaic", "linearize_mean", "even_crop",
            "demosaic", "demosaic_thesis", "channel_index", "cfa_array", "cfa_string"]
 
 #: EXIF tag codes used here (EXIF 2.32 / TIFF-EP).
@@ -167,13 +167,76 @@ def _exif_lookup(page) -> dict:
     return out
 
 
-def _tiff_info(path: Path, data: bytes | None = None) -> tuple[ExifInfo, str | None, str | None]:
+#: TIFF/DNG tags that make LibRaw transform the stored CFA values or their frame (DNG 1.6:
+#: LinearizationTable, BlackLevelDeltaH/V, ActiveArea, MaskedAreas, DefaultCropOrigin/Size)
+_TRANSFORMING_TAGS = (50712, 50715, 50716, 50829, 50830, 50719, 50720)
+
+
+@dataclass(frozen=True)
+class PlainLayout:
+    """Where an uncompressed 16-bit CFA image lies in its file: ``offset`` of pixel (0, 0)
+    (rows contiguous), ``byteorder`` ('<' or '>'), ``width`` and ``height``; and its
+    levels from the DNG tags LibRaw reads them from (``cfa``, ``black`` per 2x2 position,
+    ``white``)."""
+
+    offset: int
+    byteorder: str
+    width: int
+    height: int
+    cfa: np.ndarray
+    black: np.ndarray
+    white: float
+
+
+def _plain_layout(tf) -> PlainLayout | None:
+    """The layout of a TIFF/DNG whose one CFA image is stored plainly (uncompressed, 16 bits,
+    one sample, strips in order, no tag that LibRaw applies to the values): its pixels
+    are the file's bytes, so any crop can be read without decoding the rest. None
+    otherwise (compressed NEF or DNG, tiles, SubIFDs, linearisation tables...)."""
+    pages = list(tf.pages)
+    if len(pages) != 1:
+        return None
+    p = pages[0]
+    if (getattr(p, "subifds", None) or p.is_tiled or int(p.photometric) != 32803 or int(p.compression) != 1
+            or p.bitspersample != 16 or p.samplesperpixel != 1 or int(p.tags.valueof(254, 0) or 0) != 0
+            or 50706 not in p.tags or any(code in p.tags for code in _TRANSFORMING_TAGS)):     # 50706: DNGVersion
+        return None
+    offs, counts = [int(o) for o in p.dataoffsets], [int(c) for c in p.databytecounts]
+    h, w = int(p.imagelength), int(p.imagewidth)
+    if not offs or any(o + c != n for o, c, n in zip(offs, counts, offs[1:])) or sum(counts) != w * h * 2:
+        return None
+    # DNG 1.6 tags: CFARepeatPatternDim 33421, CFAPattern 33422, CFAPlaneColor 50710,
+    # BlackLevelRepeatDim 50713, BlackLevel 50714, WhiteLevel 50717
+    v = p.tags.valueof
+    planes = tuple(v(50710, (0, 1, 2)))
+    pattern = v(33422)
+    if tuple(v(33421, ())) != (2, 2) or pattern is None or len(pattern) != 4 or planes != (0, 1, 2):
+        return None
+    cfa = np.array([int(c) for c in pattern], np.int8).reshape(2, 2)
+    if sorted(cfa.ravel().tolist()) != [0, 1, 1, 2]:
+        return None
+    dim = tuple(v(50713, (1, 1)))
+    if dim not in ((1, 1), (2, 2)) or any(code in p.tags and int(p.tags[code].dtype) not in (3, 4)
+                                          for code in (50714, 50717)):
+        return None             # levels as RATIONAL (or odd repeats): LibRaw's reading is used
+    levels = np.atleast_1d(np.asarray(v(50714, 0), np.float64)).ravel()
+    white = np.atleast_1d(np.asarray(v(50717, 65535), np.float64)).ravel()
+    if levels.size != dim[0] * dim[1] or white.size != 1:
+        return None
+    black = np.broadcast_to(levels.astype(np.float32).reshape(dim), (2, 2)).copy()
+    return PlainLayout(offs[0], tf.byteorder, w, h, cfa, black, float(white[0]))
+
+
+def _tiff_info(path: Path, data: bytes | None = None
+               ) -> tuple[ExifInfo, str | None, str | None, PlainLayout | None]:
     """EXIF info from the TIFF structure, plus two diagnoses: ``truncated``
     (the image data runs past the end of the file: certainly broken) and
     ``unparsed`` (tifffile could not read the structure: the file may still
-    be a raw format LibRaw knows, so only LibRaw's verdict is final).
+    be a raw format LibRaw knows, so only LibRaw's verdict is final), and the
+    :class:`PlainLayout` of a plainly stored CFA image (else None).
     ``data``: the file's bytes when the caller has already read them."""
     size = path.stat().st_size if data is None else len(data)
+    layout = None
     try:
         with tifffile.TiffFile(path if data is None else io.BytesIO(data)) as tf:
             tags = _exif_lookup(tf.pages[0])
@@ -187,15 +250,16 @@ def _tiff_info(path: Path, data: bytes | None = None) -> tuple[ExifInfo, str | N
                     end = max(int(o) + int(c) for o, c in zip(offs, counts))
                     if end > size:
                         return ExifInfo(), (f"file is truncated: image data runs to byte {end} "
-                                            f"but the file has only {size} bytes"), None
+                                            f"but the file has only {size} bytes"), None, None
                 if getattr(page, "subifds", None):
                     stack.extend(page.pages or ())     # not None: the page has SubIFDs
+            layout = _plain_layout(tf)
     except tifffile.TiffFileError as e:
         if str(e).startswith("not a TIFF"):   # another raw container (CR3, RAF...): LibRaw decides
-            return ExifInfo(), None, None
-        return ExifInfo(), None, f"corrupt TIFF structure ({e})"
+            return ExifInfo(), None, None, None
+        return ExifInfo(), None, f"corrupt TIFF structure ({e})", None
     except (ValueError, TypeError, IndexError, KeyError, OSError, struct_error) as e:
-        return ExifInfo(), None, f"unreadable TIFF structure ({type(e).__name__}: {e})"
+        return ExifInfo(), None, f"unreadable TIFF structure ({type(e).__name__}: {e})", None
     iso = tags.get(TAG_ISO)
     if isinstance(iso, (tuple, list)):
         iso = iso[0] if iso else None
@@ -214,7 +278,7 @@ def _tiff_info(path: Path, data: bytes | None = None) -> tuple[ExifInfo, str | N
         timestamp=_parse_exif_time(_text(tags.get(TAG_DATETIME_ORIGINAL)), _text(tags.get(TAG_SUBSEC_TIME_ORIGINAL)),
                                    _text(tags.get(TAG_OFFSET_TIME_ORIGINAL))),
         camera=camera)
-    return info, None, None
+    return info, None, None, layout
 
 
 def read_exif(path: str | Path) -> ExifInfo:
@@ -223,7 +287,7 @@ def read_exif(path: str | Path) -> ExifInfo:
     path = Path(path)
     if not path.is_file():
         raise InputError("raw file not found", path=path)
-    info, truncated, unparsed = _tiff_info(path)
+    info, truncated, unparsed, _ = _tiff_info(path)
     problem = truncated or unparsed
     if problem:
         raise InputError(problem, path=path)
@@ -297,6 +361,13 @@ def read_raw(path: str | Path, crop: tuple[int, int, int, int] | None = None, *,
 
     The mosaic is in sensor orientation: the file's orientation flag is not
     applied (the rig's geometry is calibrated in sensor pixels).
+
+    The crop is taken as early as the format allows: a DNG whose CFA image is stored
+    plainly (uncompressed 16-bit strips, no linearisation table, active area or black
+    deltas: :class:`PlainLayout`, the twin's DNGs) has the crop's rows read from the bytes
+    already in memory for the checksum and its levels from the DNG tags LibRaw reads
+    them from, with values equal to LibRaw's decode (tests/test_extract_parallel.py);
+    anything else is decoded whole by LibRaw and cropped right after.
     """
     path = Path(path)
     if not path.is_file():
@@ -308,9 +379,38 @@ def read_raw(path: str | Path, crop: tuple[int, int, int, int] | None = None, *,
         data = path.read_bytes()
         if hashlib.sha256(data).hexdigest() != str(sha256).lower():
             raise InputError("checksum does not match capture.json (file changed since capture)", path=path)
-    info, truncated, unparsed = _tiff_info(path, data)
+    info, truncated, unparsed, layout = _tiff_info(path, data)
     if truncated:
         raise InputError(truncated, path=path)
+    if layout is not None and data is not None and crop is not None:
+        # A plainly stored DNG (PlainLayout): the crop's rows are read from the bytes already
+        # in memory, the levels from the tags LibRaw reads them from; the other rows are
+        # never decoded. tests/test_extract_parallel.py checks it equals LibRaw's reading.
+        h, w = layout.height, layout.width
+        x0, y0, x1, y1 = _check_crop(crop, w, h, path)
+        rows = np.frombuffer(data, np.dtype("<u2" if layout.byteorder == "<" else ">u2"), (y1 - y0) * w,
+                             layout.offset + 2 * y0 * w).reshape(y1 - y0, w)
+        mosaic = rows[:, x0:x1].astype(np.uint16)
+        cfa, black, white = layout.cfa.copy(), layout.black.copy(), layout.white
+    else:
+        cfa, black, white, mosaic, (x0, y0), (w, h) = _read_libraw(path, data, crop, unparsed)
+    if not (white > float(black.max())):
+        raise InputError(f"white level {white:g} is not above the black levels {black.ravel().tolist()}", path=path)
+    exp = _agree("exposure time", info.exposure_s, exposure_s, rel_tol, path)
+    if exp is None:
+        why = f" ({unparsed})" if unparsed else ""
+        raise InputError(f"no exposure time in the file's EXIF{why} and none given by the caller", path=path)
+    return RawFrame(
+        path=str(path), mosaic=mosaic, cfa=cfa, black=black, white=white, exposure_s=exp,
+        iso=_agree("ISO", info.iso, iso, rel_tol, path),
+        aperture=_agree("f-number", info.aperture, aperture, rel_tol, path),
+        timestamp=info.timestamp if info.timestamp is not None else timestamp,
+        camera=info.camera or "unknown camera", origin=(x0, y0), full_size=(w, h))
+
+
+def _read_libraw(path: Path, data: bytes | None, crop, unparsed: str | None):
+    """Decode with LibRaw (rawpy): CFA, black levels, white level, the (cropped) visible
+    mosaic, its origin and the visible image's (width, height)."""
     try:
         with rawpy.imread(str(path) if data is None else io.BytesIO(data)) as raw:
             pattern = raw.raw_pattern
@@ -336,18 +436,7 @@ def read_raw(path: str | Path, crop: tuple[int, int, int, int] | None = None, *,
         msg = e.args[0].decode("utf-8", "replace") if e.args and isinstance(e.args[0], bytes) else str(e)
         why = f"; {unparsed}" if unparsed else ""
         raise InputError(f"not a readable raw file (LibRaw: {msg}{why})", path=path) from None
-    if not (white > float(black.max())):
-        raise InputError(f"white level {white:g} is not above the black levels {black.ravel().tolist()}", path=path)
-    exp = _agree("exposure time", info.exposure_s, exposure_s, rel_tol, path)
-    if exp is None:
-        why = f" ({unparsed})" if unparsed else ""
-        raise InputError(f"no exposure time in the file's EXIF{why} and none given by the caller", path=path)
-    return RawFrame(
-        path=str(path), mosaic=mosaic, cfa=cfa, black=black, white=white, exposure_s=exp,
-        iso=_agree("ISO", info.iso, iso, rel_tol, path),
-        aperture=_agree("f-number", info.aperture, aperture, rel_tol, path),
-        timestamp=info.timestamp if info.timestamp is not None else timestamp,
-        camera=info.camera or "unknown camera", origin=(x0, y0), full_size=(w, h))
+    return cfa, black, white, mosaic, (x0, y0), (w, h)
 
 
 # ------------------------------------------------------------- linearising
@@ -383,3 +472,67 @@ def linearize(frame: RawFrame) -> np.ndarray:
     """Linearised mosaic of a :class:`RawFrame` in [0, 1] (thesis eq. 4.1-4.2;
     see :func:`linearize_mosaic` for the clipping fix)."""
     return linearize_mosaic(frame.mosaic, frame.black, frame.white)
+
+
+def linearize_mean(mosaics, black, white: float) -> tuple[np.ndarray, np.ndarray]:
+    """Thesis eq. 4.1-4.2 and 4.31 fused: the mean of the linearised repeats of one
+    exposure, ``mean_i clip((CI_i - LI^b) / (LI^s - LI^b), 0, 1)``, and where a repeat
+    was saturated (at or above the white level ``white``).
+
+    ``mosaics``: the m repeats, 2-D CFA mosaics of one shape with ``black`` (a scalar or
+    the 2x2 black levels of ``mosaic[0:2, 0:2]``) and ``white`` as in
+    :func:`linearize_mosaic`. Returns ``(mean, saturated)``: float32 and bool, the
+    mosaics' shape.
+
+    Integer raw values with integer levels (every raw format LibRaw decodes) are
+    clipped to [LI^b, LI^s] and summed as integers, which is exact; the one division,
+    (sum - m LI^b) / (m (LI^s - LI^b)), is done in float32 (all integers involved are
+    below 2^24, so exact there) and rounded once: the result is the correctly rounded
+    mean, a relative error of at most 2^-24 = 6e-8. The separate route, a float32
+    linearised frame per repeat (one rounding each) averaged in float64 and rounded to
+    float32 (:func:`linearize_mosaic` then
+    :func:`glossrig.core.radiometry.hdr.combine_repeats`), differs from it by at most
+    one float32 unit in the last place (1.2e-7 relative), while the shot noise of one
+    frame is above 1e-3 relative wherever the HDR step uses it (> 0.002 of the range,
+    about 20 electrons at ISO 320): the error budget is 1e-4 of the noise. A value at
+    or above the white level gives exactly 1.0 as in :func:`linearize_mosaic`. Other
+    inputs (float mosaics, fractional levels) take that separate route, exactly.
+    One pass over m uint16 frames instead of m float32 frames and their float64 mean:
+    no (m, H, W) float array is made.
+    """
+    mos = [np.asarray(x) for x in mosaics]
+    if not mos:
+        raise InputError("linearize_mean: no mosaics given")
+    shape = mos[0].shape
+    if len(shape) != 2 or any(x.shape != shape for x in mos):
+        raise InputError(f"linearize_mean expects 2-D CFA mosaics of one shape, got {[x.shape for x in mos]}")
+    b = np.broadcast_to(np.asarray(black, np.float64), (2, 2))
+    wl = float(white)
+    if not wl > float(b.max()):
+        raise InputError(f"white level {white} must exceed the black levels {b.ravel().tolist()}")
+    m = len(mos)
+    exact = (all(x.dtype in (np.uint8, np.uint16) for x in mos) and np.all(b == np.round(b)) and wl.is_integer()
+             and 0 <= float(b.min()) and m * wl < 2 ** 24)
+    if not exact:
+        acc = np.zeros(shape, np.float64)
+        sat = np.zeros(shape, bool)
+        for x in mos:
+            lin = linearize_mosaic(x, black, white)
+            acc += lin
+            sat |= lin >= 1.0
+        return (acc / m).astype(np.float32), sat
+    h, w = shape
+    lo = np.tile(b.astype(np.int64), (-(-h // 2), -(-w // 2)))[:h, :w]
+    total = np.zeros(shape, np.uint32)
+    sat = np.zeros(shape, bool)
+    for x in mos:
+        top = x.dtype.type(min(int(wl), int(np.iinfo(x.dtype).max)))
+        np.add(total, np.clip(x, lo.astype(x.dtype), top), out=total)
+        if wl <= np.iinfo(x.dtype).max:             # else no value of this type reaches the white level
+            sat |= x >= top
+    off = (m * lo).astype(np.float32)
+    scale = (m * (wl - lo)).astype(np.float32)
+    out = total.astype(np.float32)
+    out -= off
+    out /= scale
+    return out, sat

@@ -64,7 +64,8 @@ from glossrig.core.atomic import atomic_write
 from glossrig.core.design import coverage as cov
 from glossrig.core.design import fisher as fi
 from glossrig.core.errors import InputError
-from glossrig.core.progress import progress_enabled
+# the sweep's runners (one process, or Dask), re-exported for the design verb
+from glossrig.core.runners import DaskRunner, LocalRunner, make_runner  # noqa: F401
 from glossrig.core.rig import Led
 from glossrig.core.models.ward import WardParams, ward_envelope, ward_geometry
 
@@ -375,87 +376,6 @@ def evaluate_led(setup: EvalSetup, position) -> LedEval:
 
 def evaluate_chunk(setup: EvalSetup, positions) -> list[LedEval]:
     return [evaluate_led(setup, p) for p in positions]
-
-
-# ----------------------------------------------------------------------------
-# Runners: one process, or Dask
-# ----------------------------------------------------------------------------
-
-class LocalRunner:
-    """Evaluates chunks one after another in this process."""
-
-    name = "one process"
-
-    def run(self, setup: EvalSetup, chunks: list, desc: str = "sweep", progress: bool = True) -> list:
-        from tqdm import tqdm
-
-        out = []
-        for ch in tqdm(chunks, desc=desc, unit="chunk", disable=not progress_enabled(progress), file=_stderr()):
-            out.append(evaluate_chunk(setup, ch))
-        return out
-
-    def close(self):
-        pass
-
-
-class DaskRunner:
-    """Evaluates chunks on a Dask cluster: a new local one (``workers``
-    processes, one thread each) or the scheduler at ``address``. The setup is
-    scattered to every worker once; results come back in submission order."""
-
-    def __init__(self, address: str | None = None, workers: int = 2, timeout_s: float = 20.0):
-        try:
-            from distributed import Client, LocalCluster
-        except ImportError:
-            raise InputError("Dask is not installed: pip install -e '.[design]' (dask[distributed])") from None
-        self._cluster = None
-        if address:
-            try:
-                self.client = Client(address, timeout=f"{timeout_s}s")
-            except (OSError, TimeoutError) as e:
-                raise InputError(f"cannot reach the Dask scheduler at {address!r}: {e}") from None
-            self.name = f"Dask scheduler {address}"
-        else:
-            if workers < 1:
-                raise InputError(f"a local Dask cluster needs at least one worker, got {workers}")
-            self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                         dashboard_address=None, silence_logs=40)
-            self.client = Client(self._cluster)
-            self.name = f"local Dask cluster, {workers} worker processes"
-
-    def run(self, setup: EvalSetup, chunks: list, desc: str = "sweep", progress: bool = True) -> list:
-        from distributed import as_completed
-        from tqdm import tqdm
-
-        fut_setup = self.client.scatter(setup, broadcast=True)
-        futs = [self.client.submit(evaluate_chunk, fut_setup, ch, pure=False) for ch in chunks]
-        index = {f.key: k for k, f in enumerate(futs)}
-        out = [None] * len(futs)
-        with tqdm(total=len(futs), desc=desc, unit="chunk", disable=not progress_enabled(progress), file=_stderr()) as bar:
-            for f in as_completed(futs):
-                out[index[f.key]] = f.result()
-                bar.update(1)
-        return out
-
-    def close(self):
-        self.client.close()
-        if self._cluster is not None:
-            self._cluster.close()
-
-
-def _stderr():
-    import sys
-
-    return sys.stderr
-
-
-def make_runner(scheduler: str | None = None, workers: int = 2):
-    """``workers == 0`` and no scheduler: one process; else Dask."""
-    if scheduler:
-        return DaskRunner(address=scheduler)
-    if workers == 0:
-        return LocalRunner()
-    return DaskRunner(workers=workers)
 
 
 # ----------------------------------------------------------------------------
@@ -838,7 +758,8 @@ def optimise(rig, n_leds: int, materials, runner, space: SearchSpace = SearchSpa
     ref_pos = [np.asarray(rig.led(i).position, float) for i in ref_ids]
     todo = [p for p, ok in zip(positions, feasible) if ok] + ref_pos
     t1 = time.perf_counter()
-    results = runner.run(setup, _chunks(todo, chunk), desc="design sweep", progress=progress)
+    results = runner.map(evaluate_chunk, _chunks(todo, chunk), shared=setup, desc="design sweep",
+                         progress=progress, unit="chunk")
     evals_all = [e for ch in results for e in ch]
     t2 = time.perf_counter()
     n_feas = int(feasible.sum())

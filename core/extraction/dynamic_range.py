@@ -152,6 +152,31 @@ def dynamic_range_report(sample: pd.DataFrame, reference: pd.DataFrame | None, s
                 "angles": "5th, 50th and 95th percentiles, degrees, of the blocks missing the channel"}}
 
 
+def merge_reports(parts: list[dict]) -> dict:
+    """The report of a whole extraction from :func:`dynamic_range_report` of its parts (disjoint
+    (rotation, LED) units of the sample and the reference, as
+    :func:`glossrig.core.extraction.extract.extract_samples` streams them; the same exposures):
+    equal to the report of the concatenated tables when ``parts`` come in that order (sample
+    units by rotation and LED, then the reference's). Shortfalls are sorted as there, the
+    samples table's counts summed."""
+    if not parts:
+        raise ValueError("merge_reports: no parts")
+    out = dict(parts[0])
+    short = [e for p in parts for e in p["channel_shortfalls"]]
+    short.sort(key=lambda e: (-e["fraction_of_lit_blocks"], e["capture"], e["channel"], e["rotation"], e["led"]))
+    n = sum(p["samples_table"]["rows"] for p in parts)
+    chans = {}
+    for c in CHANNELS:
+        valid = sum(p["samples_table"]["channels"][c]["valid"] for p in parts)
+        chans[c] = {"valid": valid, "missing": n - valid,
+                    "fraction_missing": round(float(1 - valid / n), 6) if n else None}
+    out["samples_table"] = {"rows": n, "rows_with_every_channel": sum(p["samples_table"]["rows_with_every_channel"]
+                                                                      for p in parts), "channels": chans}
+    out["channel_shortfalls"] = short
+    out["blocks_without_any_channel"] = [e for p in parts for e in p["blocks_without_any_channel"]]
+    return out
+
+
 def shortfall_text(e: dict) -> str:
     """One line for a channel shortfall of :func:`dynamic_range_report`."""
     where = ", ".join(f"{k[:-4]} {v[0]:.0f}-{v[2]:.0f} deg" for k, v in e.items() if k.endswith("_deg"))

@@ -13,6 +13,13 @@ Per sample rotation (one calibration image each):
    at the block centre. The thesis keeps single CFA pixels; one sample per block
    gives all three channels at one geometry at half the linear resolution.
 
+Units of work: each (rotation, LED) of a capture is measured independently
+(:func:`measure_unit`), in worker processes (:mod:`glossrig.core.workers`, one per usable
+core by default); :func:`extract_samples` streams them, dividing each sample unit by the
+reference's as soon as both are measured, so memory does not grow with the number of
+LEDs beyond the output table. A plainly stored DNG is cropped before decoding (only the
+crop's rows are read, :func:`glossrig.core.calibration.raw.read_raw`).
+
 Diffuse normalisation (thesis 4.4, eq. 4.73-4.78) divides the sample's values by
 the reference capture's at the nearest geometry, found with a KD-tree per (LED,
 rotation). Departure from eq. 4.76: the distance is the Euclidean distance of the
@@ -41,6 +48,7 @@ from glossrig.core.calibration.markers import holder_marker_corners
 from glossrig.core.calibration.raw import even_crop
 from glossrig.core.rig import Rig, load_rig
 from glossrig.core.samples import CHANNEL_WEIGHT_COLUMNS
+from glossrig.core.workers import ordered_results, process_pool, release_memory, resolve_workers
 
 PATCH_SHRINK = 0.2        # keep the inner 60 % of the white patch (away from the red frame)
 
@@ -129,8 +137,10 @@ def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
     if not seq:
         raise InputError(f"no sequence for LED {led} at rotation {geom.rotation:g} deg", path=man.path)
     frames = [man.read_raw(im, crop=geom.crop) for im in seq]      # checksums checked
-    stack = hdrmod.stack_frames(frames, [im.repeat for im in seq])
     cfa = frames[0].cfa
+    stack = hdrmod.stack_frames(frames, [im.repeat for im in seq], release=True)
+    del frames
+    release_memory()          # the frames' pages, freed, back to the system before the HDR step
     if estimator == "ml":
         res = hdrmod.hdr_from_stack(stack, hdrmod.NoiseModel.from_rig(rig, iso=seq[0].iso))
         rate, var, status = res.rate, res.variance, res.status
@@ -273,9 +283,100 @@ def measure_unit(man: Manifest, rig: Rig, g: RotationGeometry, rot: float, led: 
     return df
 
 
+@dataclass
+class _Source:
+    """One capture to measure: its manifest, rig and the prefix of its unit names in a work store."""
+
+    man: Manifest
+    rig: Rig
+    prefix: str = ""
+
+    def units(self) -> list[tuple[float, int]]:
+        """Its (rotation, LED) units in plan order."""
+        return [(rot, led) for rot in self.man.rotations()
+                for led in sorted({im.leds[0] for im in self.man.select("sequence", rotation=rot)})]
+
+    def unit_name(self, rot: float, led: int) -> str:
+        return f"{self.prefix}rot{rot:g}-led{led}"
+
+
+def _open_source(folder, name: str, what: str, prefix: str) -> _Source:
+    man = load_manifest(folder)
+    man.require_sequences(what, name)
+    if not man.complete:
+        raise InputError("capture is not complete (interrupted?): resume it before extracting", path=man.path)
+    return _Source(man, load_rig(man.rig_path()), prefix)
+
+
+def _solve_geometries(pool, sources: list[_Source], cam: CameraCalibration, keys, geoms: dict) -> None:
+    """Solve :func:`rotation_geometry` for every (source index, rotation) of ``keys`` not in
+    ``geoms`` (in ``pool`` when given) and add them."""
+    need = [k for k in dict.fromkeys(keys) if k not in geoms]
+    jobs = [(sources[i].man, sources[i].rig, cam, rot) for i, rot in need]
+    # one at a time: a full-resolution calibration image's demosaic and marker search take
+    # ~2 GB, and two side by side would set the run's peak memory
+    for key, g in zip(need, ordered_results(pool, rotation_geometry if pool is None else _geometry_in_worker, jobs,
+                                            window=1)):
+        geoms[key] = g
+
+
+def _measured_units(pool, sources: list[_Source], order, cam: CameraCalibration, lamps, estimator: str, store,
+                    geoms: dict, bar):
+    """The table of every (source index, rotation, LED) of ``order`` (:func:`measure_unit`), yielded
+    in that order: from ``store`` when it holds the unit, else measured in ``pool`` (None: in this
+    process) and saved to ``store``. The geometries the measured units need are solved first
+    (:func:`_solve_geometries`) and kept in ``geoms``."""
+    def stored(i, rot, led) -> bool:
+        return store is not None and store.has(sources[i].unit_name(rot, led))
+
+    order = list(order)
+    todo = [job for job in order if not stored(*job)]
+    _solve_geometries(pool, sources, cam, [(i, rot) for i, rot, _ in todo], geoms)
+    computed = ordered_results(pool, measure_unit if pool is None else _unit_in_worker,
+                               [(sources[i].man, sources[i].rig, geoms[(i, rot)], rot, led, lamps, estimator)
+                                for i, rot, led in todo])
+    todo_set = set(todo)
+    for i, rot, led in order:
+        name = sources[i].unit_name(rot, led)
+        if (i, rot, led) in todo_set:
+            df = next(computed)
+            if store is not None:
+                store.save(name, df)
+        else:
+            df = store.load(name)
+        bar.update(1)
+        yield df
+
+
+def _unit_in_worker(*args) -> pd.DataFrame:
+    """:func:`measure_unit` as a worker process runs it (named, so a job pickles as a reference to
+    it whatever this process has put in ``measure_unit``'s place), its memory given back after."""
+    try:
+        return measure_unit(*args)
+    finally:
+        release_memory()
+
+
+def _geometry_in_worker(*args) -> RotationGeometry:
+    """:func:`rotation_geometry` in a worker process, its memory given back after."""
+    try:
+        return rotation_geometry(*args)
+    finally:
+        release_memory()
+
+
+def _pool(workers: int | None, jobs: int):
+    """A process pool of ``workers`` (None: every usable core) for ``jobs`` units of work, or
+    a null context (None: work in this process) when one process is asked for or enough."""
+    from contextlib import nullcontext
+
+    n = min(resolve_workers(workers), max(jobs, 1))
+    return process_pool(n) if n > 1 else nullcontext()
+
+
 def measure_capture(folder, cam: CameraCalibration, lamps: dict[int, np.ndarray] | None, estimator: str = "ml",
                     progress: bool = False, name: str = "SAMPLE_DIR", what: str = "extract",
-                    store=None, unit_prefix: str = "") -> Measured:
+                    store=None, unit_prefix: str = "", workers: int | None = None) -> Measured:
     """Measure every (block, LED, rotation) of a capture (see :class:`Measured`).
     ``name`` and ``what`` (the argument and the verb) word the error for a capture
     with no exposure sequences (a checkerboard capture, say), which stops here.
@@ -285,35 +386,24 @@ def measure_capture(folder, cam: CameraCalibration, lamps: dict[int, np.ndarray]
     ``unit_prefix`` + ``rot<deg>-led<id>`` and reuses the ones it already holds, so an
     interrupted measurement resumes where it stopped with the same table (units are
     concatenated in plan order). The geometry of every rotation is always solved:
-    callers use :attr:`Measured.geometry`."""
+    callers use :attr:`Measured.geometry`.
+
+    ``workers``: processes measuring units at once (:mod:`glossrig.core.workers`; None:
+    every usable core; 1: all in this process). Units are independent and concatenated in
+    plan order, so the table is the same for any number; the store is read and written
+    here, in the calling process."""
     from tqdm import tqdm
 
-    man = load_manifest(folder)
-    man.require_sequences(what, name)
-    if not man.complete:
-        raise InputError("capture is not complete (interrupted?): resume it before extracting", path=man.path)
-    rig = load_rig(man.rig_path())
-    frames = []
-    jobs = [(rot, led) for rot in man.rotations()
-            for led in sorted({im.leds[0] for im in man.select("sequence", rotation=rot)})]
-    bar = tqdm(total=len(jobs), desc=f"extract {Path(folder).name}", unit="LED", disable=not progress_enabled(progress))
-    geoms = {}
-    for rot, led in jobs:
-        if rot not in geoms:
-            geoms[rot] = rotation_geometry(man, rig, cam, rot)
-        g = geoms[rot]
-        unit = f"{unit_prefix}rot{rot:g}-led{led}"
-        if store is not None and store.has(unit):
-            frames.append(store.load(unit))
-            bar.update(1)
-            continue
-        df = measure_unit(man, rig, g, rot, led, lamps, estimator)
-        if store is not None:
-            store.save(unit, df)
-        frames.append(df)
-        bar.update(1)
+    src = _open_source(folder, name, what, unit_prefix)
+    order = [(0, rot, led) for rot, led in src.units()]
+    bar = tqdm(total=len(order), desc=f"extract {Path(folder).name}", unit="LED", disable=not progress_enabled(progress))
+    geoms: dict = {}
+    with _pool(workers, len(order)) as pool:
+        _solve_geometries(pool, [src], cam, [(0, rot) for rot in src.man.rotations()], geoms)
+        frames = list(_measured_units(pool, [src], order, cam, lamps, estimator, store, geoms, bar))
     bar.close()
-    return Measured(pd.concat(frames, ignore_index=True), str(man.rig_path()), geoms)
+    return Measured(pd.concat(frames, ignore_index=True), str(src.man.rig_path()),
+                    {rot: g for (_, rot), g in geoms.items()})
 
 
 def _dirs(df: pd.DataFrame) -> np.ndarray:
@@ -334,48 +424,71 @@ def diffuse_normalize(sample: pd.DataFrame, reference: pd.DataFrame, albedo: flo
     channel c's BRDF value (NaN where missing) and ``weight`` their mean over the row's
     valid channels, all divided by the mean of ``weight``. The reference's
     ``status_<c>`` / ``fix_s_<c>`` come along as ``ref_status_<c>`` / ``ref_fix_s_<c>``
-    where the reference table has them (:mod:`glossrig.core.extraction.dynamic_range`)."""
-    from scipy.spatial import cKDTree
-
-    if not (0 < albedo <= 1):
-        raise InputError(f"reference albedo must lie in (0, 1], got {albedo}")
+    where the reference table has them (:mod:`glossrig.core.extraction.dynamic_range`).
+    Each (LED, rotation) is :func:`normalize_unit`; :func:`extract_samples` streams them."""
+    _check_albedo(albedo)
     out = []
     for (led, rot), s in sample.groupby(["led", "rotation"], sort=True):
         r = reference[(reference.led == led) & (reference.rotation == rot)]
         if r.empty:
             raise InputError(f"the reference capture has no LED {led} at rotation {rot:g} deg")
-        tree = cKDTree(_dirs(r))
-        d, idx = tree.query(_dirs(s))
-        keep = d <= max_distance
-        s = s[keep].copy()
-        rr = r.iloc[idx[keep]]
-        w = np.zeros(len(s))
-        nw = np.zeros(len(s))
-        for c in "rgb":
-            R = rr[c].to_numpy()
-            S = s[c].to_numpy()
-            ok = R > 0          # False for a NaN reference value too
-            with np.errstate(invalid="ignore"):
-                f = np.where(ok, albedo / np.pi * S / np.where(ok, R, 1.0), np.nan)
-                # relative variance of a ratio: var(S)/S^2 + var(R)/R^2
-                rel = (s[f"var_{c}"].to_numpy() / np.maximum(S, 1e-12) ** 2
-                       + rr[f"var_{c}"].to_numpy() / np.maximum(R, 1e-12) ** 2)
-                wc = 1.0 / np.maximum(rel * f ** 2, 1e-30)
-            s[c] = f
-            s[f"weight_{c}"] = wc                       # NaN where the channel is missing
-            valid = np.isfinite(f) & np.isfinite(wc)
-            w += np.where(valid, wc, 0.0)
-            nw += valid
-            for k in (f"status_{c}", f"fix_s_{c}"):
-                if k in rr:
-                    s[f"ref_{k}"] = rr[k].to_numpy()
-        with np.errstate(invalid="ignore", divide="ignore"):
-            s["weight"] = w / nw
-        out.append(s)
+        out.append(normalize_unit(s, r, albedo, max_distance))
     res = pd.concat(out, ignore_index=True)
+    return scale_weights(kept_rows(res))
+
+
+def _check_albedo(albedo: float) -> None:
+    if not (0 < albedo <= 1):
+        raise InputError(f"reference albedo must lie in (0, 1], got {albedo}")
+
+
+def normalize_unit(s: pd.DataFrame, r: pd.DataFrame, albedo: float = 0.8, max_distance: float = 0.02) -> pd.DataFrame:
+    """:func:`diffuse_normalize` of one (LED, rotation): the sample's rows ``s`` divided by
+    the reference's ``r`` at the nearest geometry (KD-tree), before :func:`kept_rows` and
+    :func:`scale_weights`. Rows are independent, so both can follow per unit or on the
+    concatenation alike."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(_dirs(r))
+    d, idx = tree.query(_dirs(s))
+    keep = d <= max_distance
+    s = s[keep].copy()
+    rr = r.iloc[idx[keep]]
+    w = np.zeros(len(s))
+    nw = np.zeros(len(s))
+    for c in "rgb":
+        R = rr[c].to_numpy()
+        S = s[c].to_numpy()
+        ok = R > 0          # False for a NaN reference value too
+        with np.errstate(invalid="ignore"):
+            f = np.where(ok, albedo / np.pi * S / np.where(ok, R, 1.0), np.nan)
+            # relative variance of a ratio: var(S)/S^2 + var(R)/R^2
+            rel = (s[f"var_{c}"].to_numpy() / np.maximum(S, 1e-12) ** 2
+                   + rr[f"var_{c}"].to_numpy() / np.maximum(R, 1e-12) ** 2)
+            wc = 1.0 / np.maximum(rel * f ** 2, 1e-30)
+        s[c] = f
+        s[f"weight_{c}"] = wc                       # NaN where the channel is missing
+        valid = np.isfinite(f) & np.isfinite(wc)
+        w += np.where(valid, wc, 0.0)
+        nw += valid
+        for k in (f"status_{c}", f"fix_s_{c}"):
+            if k in rr:
+                s[f"ref_{k}"] = rr[k].to_numpy()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s["weight"] = w / nw
+    return s
+
+
+def kept_rows(res: pd.DataFrame) -> pd.DataFrame:
+    """The rows of :func:`normalize_unit` output that are samples: one valid channel at
+    least (not all three), both directions above the surface."""
     res = res[np.isfinite(res[["r", "g", "b"]]).any(axis=1)]       # a row needs one channel, not all three
     good = (res.theta_in < np.pi / 2) & (res.theta_out < np.pi / 2)
-    res = res[good].copy()
+    return res[good].copy()
+
+
+def scale_weights(res: pd.DataFrame) -> pd.DataFrame:
+    """Divide ``weight`` and ``weight_<c>`` by the mean ``weight`` of all rows (in place; returned)."""
     scale = res["weight"].mean()
     for k in ("weight", "weight_r", "weight_g", "weight_b"):
         res[k] = res[k] / scale
@@ -419,35 +532,76 @@ def measurement_fingerprint(sample_dir, reference_dir, cam: CameraCalibration, l
                        options={**options, "lamps_mm": lp})
 
 
+#: the samples table's columns (:mod:`glossrig.core.samples`), in order
+SAMPLE_COLUMNS = (list(ANGLE_COLUMNS) + ["r", "g", "b", "weight", "u", "v", "led", "rotation"]
+                  + list(CHANNEL_WEIGHT_COLUMNS))
+_PLOT_COLUMNS = ["u", "v", "rotation", "led", "r", "g", "b"]      # what extract_plots reads of the measured sample
+
+
 def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: dict[int, np.ndarray],
                     albedo: float = 0.8, estimator: str = "ml", progress: bool = False, plots=None,
-                    store=None) -> pd.DataFrame:
+                    store=None, workers: int | None = None) -> pd.DataFrame:
     """The full extraction: sample and reference measured alike, then divided (eq. 4.78).
 
     ``store``: a :class:`glossrig.core.checkpoint.WorkStore` fingerprinted with
     :func:`measurement_fingerprint` (and the estimator); every finished LED of either
-    capture is kept there and reused, so an interrupted extraction resumes."""
-    check_compatible(sample_dir, reference_dir)
-    s = measure_capture(sample_dir, cam, lamps, estimator=estimator, progress=progress, store=store,
-                        unit_prefix="sample-").table
-    r = measure_capture(reference_dir, cam, lamps, estimator=estimator, progress=progress, name="REF_DIR",
-                        store=store, unit_prefix="reference-").table
-    out = diffuse_normalize(s, r, albedo=albedo)
-    cols = list(ANGLE_COLUMNS) + ["r", "g", "b", "weight", "u", "v", "led", "rotation"] + list(CHANNEL_WEIGHT_COLUMNS)
-    res = out[cols].reset_index(drop=True)
-    # which channels ran out of dynamic range, where, and what exposure would have fixed it
-    from glossrig.core.extraction.dynamic_range import dynamic_range_report, log_dynamic_range
+    capture is kept there and reused, so an interrupted extraction resumes.
 
-    report = dynamic_range_report(s, r, out, exposures={"sample": _exposures(sample_dir),
-                                                        "reference": _exposures(reference_dir)})
+    ``workers``: processes measuring (rotation, LED) units at once (None: every usable
+    core, :func:`glossrig.core.workers.usable_cores`; 1: all in this process). Streamed:
+    each unit of the sample is measured next to the reference's, the pair is divided
+    (:func:`normalize_unit`), its dynamic-range report made and only the samples' columns
+    kept, so memory holds the output table plus a few units at a time whatever the number
+    of LEDs, not both captures' full tables. The table (rows sorted by LED, then rotation,
+    as :func:`diffuse_normalize` sorts them) is the same for any number of workers."""
+    from tqdm import tqdm
+
+    from glossrig.core.extraction.dynamic_range import dynamic_range_report, log_dynamic_range, merge_reports
+
+    _check_albedo(albedo)
+    check_compatible(sample_dir, reference_dir)
+    sources = [_open_source(sample_dir, "SAMPLE_DIR", "extract", "sample-"),
+               _open_source(reference_dir, "REF_DIR", "extract", "reference-")]
+    s_units = sources[0].units()
+    extra = [u for u in sources[1].units() if u not in set(s_units)]
+    order = [(i, rot, led) for rot, led in s_units for i in (0, 1)] + [(1, rot, led) for rot, led in extra]
+    exposures = {"sample": _exposures(sample_dir), "reference": _exposures(reference_dir)}
+    bar = tqdm(total=len(order), desc=f"extract {Path(sample_dir).name} + {Path(reference_dir).name}", unit="LED",
+               disable=not progress_enabled(progress))
+    chunks: dict = {}         # (led, rotation) -> that unit's samples
+    parts: dict = {}          # (capture, rotation, led) -> its dynamic-range report
+    plotted = []
+    held: dict = {}
+    with _pool(workers, len(order)) as pool:
+        for (i, rot, led), df in zip(order, _measured_units(pool, sources, order, cam, lamps, estimator, store, {},
+                                                             bar)):
+            if i == 0:
+                held[(rot, led)] = df
+                if plots is not None:
+                    plotted.append(df[_PLOT_COLUMNS])
+                continue
+            s = held.pop((rot, led), None)
+            if s is None:                # a reference unit the sample lacks: reported, not divided
+                parts[("reference", rot, led)] = dynamic_range_report(None, df, df.iloc[:0], exposures)
+                continue
+            out = kept_rows(normalize_unit(s, df, albedo))
+            parts[("sample", rot, led)] = dynamic_range_report(s, None, out, exposures)
+            parts[("reference", rot, led)] = dynamic_range_report(None, df, out.iloc[:0], exposures)
+            chunks[(led, rot)] = out[SAMPLE_COLUMNS]
+            del s, df, out
+            release_memory()
+    bar.close()
+    res = scale_weights(pd.concat([chunks[k] for k in sorted(chunks)], ignore_index=True))
+    # which channels ran out of dynamic range, where, and what exposure would have fixed it
+    report = merge_reports([parts[k] for k in sorted(parts, key=lambda k: (k[0] != "sample", k[1], k[2]))])
     log_dynamic_range(report)
     res.attrs["dynamic_range"] = report
     if plots is not None:
         from glossrig.core.extraction.dynamic_range import write_dynamic_range
         from glossrig.core.extraction.extract_plots import write_plots
 
-        write_plots(Path(plots), s, res)
-        write_dynamic_range(Path(plots), report, out)
+        write_plots(Path(plots), pd.concat(plotted, ignore_index=True), res)
+        write_dynamic_range(Path(plots), report, res)
     return res
 
 

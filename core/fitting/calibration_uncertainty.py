@@ -27,9 +27,18 @@ for the existing samples, what changes:
   the surface point by ~1.5 mm, its normal by degrees). Each draw therefore re-solves
   the corner PnP of both markers with the perturbed intrinsics (the corners the
   calibration found) and applies the change of the PnP pose to the refined pose.
-  The distortion coefficients are not drawn: camera.json holds their standard
-  deviations but not their (strong) correlations, and independent draws of k1, k2, k3
-  would give distortions no calibration could produce.
+  The intrinsics and distortion are drawn **together** by a parametric bootstrap of
+  the camera calibration (:func:`camera_draw`: the board corners of the calibration's
+  views, moved by noise of its own reprojection RMS, calibrated again), so each draw
+  is a camera a calibration could have produced, with the correlations of fx, fy, cx,
+  cy and the distortion among each other and with the views. Independent normal draws
+  of fx, fy, cx, cy from OpenCV's marginal standard deviations, with the distortion
+  held, made cameras no calibration produces: on a scale-0.1 twin measurement their
+  spread of alpha_x was 12 times, of rho_s 17 times what the joint draws give, and the
+  whole component 12-14 times the alphas' actual errors (now 1.1-1.5 times)
+  (validation/uncertainty_coverage.md, section 1). A camera file without its views
+  (not written by ``glossrig calibrate camera``) leaves the intrinsics undrawn, and
+  the component's ``_meta`` says so.
 * the **values**: a sample's value is the sample capture's over the reference
   capture's at the same pixel, LED and rotation (eq. 4.78), so the irradiance factors
   that depend on the lamp position and geometry (1/r^2, cos theta_in) cancel; what
@@ -37,8 +46,8 @@ for the existing samples, what changes:
   and its departure from a Lambertian reflector, drawn as the multiplier
   ``1 + h_i (1 - cos theta_in - m_i) + h_o (1 - cos theta_out - m_o)`` with
   ``h ~ N(0, u_angular)`` (``m`` the means over the rows: the level is the albedo's).
-* the **refit**: the point model (eq. 4.79) is refitted by least squares, warm-started
-  from the nominal fit's parameters, on a subsample of rows (``max_rows``), for
+* the **refit**: the point model (eq. 4.79) is refitted by least squares (Gauss-Newton,
+  :func:`_refit`), warm-started from the nominal fit's parameters, on a subsample of rows (``max_rows``), for
   luminance and each colour channel; the same refit on the nominal geometry is the
   reference, so the footprint model, clipping choices and the subsample's own bias
   cancel in the difference. The weights of eq. 4.82 are recomputed from the perturbed
@@ -91,6 +100,66 @@ def lamp_std(doc: dict) -> dict[int, np.ndarray]:
 
 
 @dataclass
+class CameraViews:
+    """What a parametric bootstrap of the camera calibration needs (camera.json): the
+    board's corner coordinates (mm), each used view's pose (rvec, tvec) and the
+    calibration's reprojection RMS (px per corner)."""
+
+    obj: np.ndarray
+    rvecs: list
+    tvecs: list
+    rms_px: float
+
+    @classmethod
+    def from_camera_doc(cls, doc: dict) -> CameraViews | None:
+        """From camera.json's ``board``, ``views`` and ``reprojection_rms_px``; None when
+        the file lacks any of them (a calibration not made by ``glossrig calibrate camera``)."""
+        from glossrig.core.calibration.intrinsics import board_points
+
+        board, views = doc.get("board") or {}, doc.get("views") or []
+        try:
+            nx, ny = (int(v) for v in board["inner_corners"])
+            obj = board_points((nx, ny), float(board["square_mm"]))
+            rv = [np.asarray(v["rvec"], float).reshape(3, 1) for v in views]
+            tv = [np.asarray(v["tvec_mm"], float).reshape(3, 1) for v in views]
+            rms = float(doc["reprojection_rms_px"])
+        except (KeyError, TypeError, ValueError):
+            return None
+        if len(rv) < 3 or not (math.isfinite(rms) and rms > 0):
+            return None
+        return cls(obj=obj, rvecs=rv, tvecs=tv, rms_px=rms)
+
+
+def camera_draw(views: CameraViews, K: np.ndarray, dist: np.ndarray, size: tuple[int, int], rng):
+    """One draw of the intrinsics AND distortion with their correlations (GUM-S1 by a
+    parametric bootstrap of the calibration, Efron & Tibshirani 1993 ch. 6): the board
+    corners each view would show under the calibrated camera (``cv2.projectPoints``),
+    moved by normal noise of the calibration's own residual size (per image axis
+    ``rms / sqrt(2)``, times ``sqrt(2N / (2N - p))`` for the ``p`` parameters the
+    calibration fitted to its ``N`` corners), and calibrated again
+    (``cv2.calibrateCamera``, thesis 4.3.1, warm-started at the nominal camera).
+    The drawn ``(K, dist)`` vary together the way the calibration's errors do: an
+    error of the principal point comes with the distortion and the views' poses that
+    compensate it, which independent draws of fx, fy, cx, cy (OpenCV's marginal standard
+    deviations) lose (module docstring; validation/uncertainty_coverage.md, section 1)."""
+    import cv2
+
+    n_pts = len(views.rvecs) * len(views.obj)
+    n_par = 9 + 6 * len(views.rvecs)
+    sigma = views.rms_px / math.sqrt(2.0) * math.sqrt(2 * n_pts / max(2 * n_pts - n_par, 1))
+    obj = views.obj.astype(np.float32)
+    img = []
+    for rv, tv in zip(views.rvecs, views.tvecs):
+        p, _ = cv2.projectPoints(obj.astype(np.float64), rv, tv, K, dist)
+        img.append((p.reshape(-1, 2) + sigma * rng.standard_normal((len(obj), 2))).astype(np.float32).reshape(-1, 1, 2))
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    _, K2, d2, _, _ = cv2.calibrateCamera([obj] * len(img), img, tuple(int(v) for v in size), K.copy(),
+                                          np.asarray(dist, float).reshape(1, -1).copy(),
+                                          flags=cv2.CALIB_USE_INTRINSIC_GUESS, criteria=crit)
+    return np.asarray(K2, float), np.asarray(d2, float).ravel()[:5]
+
+
+@dataclass
 class CalibrationInputs:
     """The nominal calibration and its stated uncertainties (module docstring)."""
 
@@ -106,6 +175,7 @@ class CalibrationInputs:
     albedo_u: float = ALBEDO_U_REL
     angular_u: float = ALBEDO_ANGULAR_U_REL
     sources_files: dict = field(default_factory=dict)
+    camera_views: CameraViews | None = None     # for the correlated draws of the intrinsics (camera_draw)
 
 
 def rotation_poses(res: dict, rig) -> dict:
@@ -142,9 +212,10 @@ def load_inputs(camera_json, lamps_json, capture_dir, rotations) -> CalibrationI
     from glossrig.core.toml_input import read_json
 
     cam = load_camera(camera_json)
+    cdoc = read_json(Path(camera_json), "camera calibration")
     std = cam.meta.get("std") if isinstance(cam.meta, dict) else None
     if not std:
-        std = (read_json(Path(camera_json), "camera calibration").get("std") or {})
+        std = (cdoc.get("std") or {})
     lamps = load_lamps(lamps_json)
     ldoc = read_json(Path(lamps_json), "lamp file")
     man = load_manifest(capture_dir)
@@ -158,7 +229,8 @@ def load_inputs(camera_json, lamps_json, capture_dir, rotations) -> CalibrationI
                              lamps=lamps, lamps_std=lamp_std(ldoc), radius=rig.cylinder_radius,
                              height=rig.sample_height, poses=poses,
                              sources_files={"camera": str(camera_json), "lamps": str(lamps_json),
-                                            "capture": str(capture_dir)})
+                                            "capture": str(capture_dir)},
+                             camera_views=CameraViews.from_camera_doc(cdoc))
 
 
 def _small_rotation(w: np.ndarray) -> np.ndarray:
@@ -167,7 +239,7 @@ def _small_rotation(w: np.ndarray) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(w, float).reshape(3, 1))[0]
 
 
-def _draw_pose(p: dict, K0, K, dist, rng, poses_on: bool, intr_on: bool):
+def _draw_pose(p: dict, K, dist, rng, poses_on: bool, intr_on: bool):
     """One draw of a pose (camera frame): the refined pose, moved by the change of the
     corner PnP under the drawn intrinsics and by its own stated noise."""
     import cv2
@@ -180,9 +252,11 @@ def _draw_pose(p: dict, K0, K, dist, rng, poses_on: bool, intr_on: bool):
                                   rvec=rv0.copy(), tvec=p["t_pnp"].reshape(3, 1).copy(),
                                   useExtrinsicGuess=True, flags=flag)
         if ok:
-            Rn = cv2.Rodrigues(rv)[0]
-            R = Rn @ p["R_pnp"].T @ R
-            t = t + (tv.ravel() - p["t_pnp"])
+            # the camera-frame motion x -> dR x + (t_new - dR t_pnp) that takes the PnP pose to
+            # its re-solved one, applied to the refined pose
+            dR = cv2.Rodrigues(rv)[0] @ p["R_pnp"].T
+            R = dR @ R
+            t = dR @ t + (tv.ravel() - dR @ p["t_pnp"])
     if poses_on:
         w = np.radians(p["std_rot_deg"]) * rng.standard_normal(3)
         R = R @ _small_rotation(w)                 # about the marker's own axes (poses.refine_pose_edges)
@@ -190,7 +264,7 @@ def _draw_pose(p: dict, K0, K, dist, rng, poses_on: bool, intr_on: bool):
     return R, t
 
 
-def row_angles(cal: CalibrationInputs, u, v, led, rotation, *, K=None, poses=None, lamps=None):
+def row_angles(cal: CalibrationInputs, u, v, led, rotation, *, K=None, poses=None, lamps=None, dist=None):
     """The BRDF angles (dict of arrays, with ``cos_in``, ``cos_out``, ``valid``) of the
     rows at block centres ``(u + 0.5, v + 0.5)``, recomputed from a calibration
     (default: the nominal one): ``poses`` rotation -> ((R_hold, t_hold), (R_cyl, t_cyl))
@@ -200,6 +274,7 @@ def row_angles(cal: CalibrationInputs, u, v, led, rotation, *, K=None, poses=Non
     from glossrig.core.models.angles import ANGLE_COLUMNS, normalize
 
     K = cal.K if K is None else K
+    dist = cal.dist if dist is None else dist
     lamps = cal.lamps if lamps is None else lamps
     n = len(u)
     out = {k: np.full(n, np.nan) for k in (*ANGLE_COLUMNS, "cos_in", "cos_out")}
@@ -214,7 +289,7 @@ def row_angles(cal: CalibrationInputs, u, v, led, rotation, *, K=None, poses=Non
             Rh, th, Rc, tc = rp["holder"]["R"], rp["holder"]["t"], rp["cylinder"]["R"], rp["cylinder"]["t"]
         R_cyl, t_cyl = relative_to_holder(Rh, th, Rc, tc)
         sel = np.flatnonzero(rotation == rot)
-        d_cam = undistorted_rays(K, cal.dist, u[sel] + 0.5, v[sel] + 0.5)
+        d_cam = undistorted_rays(K, dist, u[sel] + 0.5, v[sel] + 0.5)
         C = -Rh.T @ th
         o_cyl = R_cyl.T @ (C - t_cyl)
         p_cyl, ok = intersect_cylinder(o_cyl, (d_cam @ Rh) @ R_cyl, cal.radius, -cal.height / 2, cal.height / 2)
@@ -238,17 +313,17 @@ def row_angles(cal: CalibrationInputs, u, v, led, rotation, *, K=None, poses=Non
 
 
 def draw_calibration(cal: CalibrationInputs, rng, sources=SOURCES):
-    """One Monte Carlo draw: (K, poses, lamps, albedo scale, angular coefficients)."""
-    K = cal.K.copy()
-    intr = "intrinsics" in sources and any(cal.std_K.values())
+    """One Monte Carlo draw: (K, dist, poses, lamps, albedo scale, angular coefficients).
+    The intrinsics and distortion are drawn together by :func:`camera_draw` where the
+    camera file allows it (else not drawn: :func:`intrinsics_drawn`)."""
+    K, dist = cal.K.copy(), np.asarray(cal.dist, float).copy()
+    intr = intrinsics_drawn(cal, sources)
     if intr:
-        K[0, 0] += cal.std_K["fx"] * rng.standard_normal()
-        K[1, 1] += cal.std_K["fy"] * rng.standard_normal()
-        K[0, 2] += cal.std_K["cx"] * rng.standard_normal()
-        K[1, 2] += cal.std_K["cy"] * rng.standard_normal()
+        assert cal.camera_views is not None
+        K, dist = camera_draw(cal.camera_views, cal.K, cal.dist, cal.size, rng)
     poses = {}
     for rot, rp in cal.poses.items():
-        poses[rot] = tuple(_draw_pose(rp[k], cal.K, K, cal.dist, rng, "poses" in sources, intr)
+        poses[rot] = tuple(_draw_pose(rp[k], K, dist, rng, "poses" in sources, intr)
                            for k in ("holder", "cylinder"))
     lamps = {k: (p + cal.lamps_std[k] * rng.standard_normal(3)) if "lamps" in sources else p
              for k, p in cal.lamps.items()}
@@ -257,12 +332,21 @@ def draw_calibration(cal: CalibrationInputs, rng, sources=SOURCES):
         hi, ho = cal.angular_u * rng.standard_normal(2)
     else:
         scale, hi, ho = 1.0, 0.0, 0.0
-    return K, poses, lamps, scale, (hi, ho)
+    return K, dist, poses, lamps, scale, (hi, ho)
 
 
-def _refit(ang, y, sw, x0, weighting, clip):
-    from scipy.optimize import least_squares
+def intrinsics_drawn(cal: CalibrationInputs, sources=SOURCES) -> bool:
+    """Whether a draw varies the intrinsics: asked for, and the camera file holds the
+    views a parametric bootstrap needs (:class:`CameraViews`)."""
+    return "intrinsics" in sources and cal.camera_views is not None
 
+
+def _refit(ang, y, sw, x0, weighting, clip, max_iter: int = 12):
+    """The point model (eq. 4.79) refitted to ``y`` at the angles ``ang`` by weighted least
+    squares (eq. 4.81-4.82), from ``x0`` (solver parameters, log alphas): Gauss-Newton with
+    step halving, within Table 4.2's bounds. The draws move the optimum by little, so a
+    few steps from a nearby start converge (a trust-region solver's bookkeeping cost 10
+    times as much here)."""
     from glossrig.core.fitting.fit import ALPHA_MIN, peak_weight
     from glossrig.core.models.ward import ALPHA_MAX, ward_geometry, ward_param_jacobian, ward_parts
 
@@ -270,23 +354,40 @@ def _refit(ang, y, sw, x0, weighting, clip):
                                   ang.get("theta_d"), ang.get("phi_d"), mode=weighting)
     geo = ward_geometry(ang["theta_in"], ang["theta_out"], ang["theta_h"], ang["phi_h"])
     yc = y if clip is None else np.minimum(y, clip)
+    lb = np.array([0.0, 0.0, math.log(ALPHA_MIN), math.log(ALPHA_MIN), -np.inf])
+    ub = np.array([np.inf, np.inf, math.log(ALPHA_MAX), math.log(ALPHA_MAX), np.inf])
 
-    def fun(x):
-        f, _ = ward_parts(geo, x, log_alpha=True)
-        return W * ((f if clip is None else np.minimum(f, clip)) - yc)
-
-    def jac(x):
+    def residual(x):
         f, parts = ward_parts(geo, x, log_alpha=True)
+        return W * ((f if clip is None else np.minimum(f, clip)) - yc), f, parts
+
+    x = np.clip(np.asarray(x0, float), lb, ub)
+    r, f, parts = residual(x)
+    cost = float(r @ r)
+    for _ in range(max_iter):
         J = ward_param_jacobian(geo, x, parts, log_alpha=True) * W[:, None]
         if clip is not None:
             J[f >= clip] = 0.0
-        return J
-
-    lb = [0.0, 0.0, math.log(ALPHA_MIN), math.log(ALPHA_MIN), -np.inf]
-    ub = [np.inf, np.inf, math.log(ALPHA_MAX), math.log(ALPHA_MAX), np.inf]
-    res = least_squares(fun, x0, jac=jac, bounds=(lb, ub), method="trf", x_scale="jac", ftol=1e-10,
-                        xtol=1e-10, gtol=1e-10, max_nfev=30)
-    return res.x
+        norms = np.sqrt(np.einsum("ij,ij->j", J, J))
+        scale = np.where(norms > 0, norms, 1.0)
+        step = np.linalg.lstsq(J / scale, -r, rcond=1e-12)[0] / scale
+        t = 1.0
+        while t > 1e-4:
+            xn = np.clip(x + t * step, lb, ub)
+            rn, fn, pn = residual(xn)
+            cn = float(rn @ rn)
+            if cn <= cost:
+                break
+            t *= 0.5
+        else:
+            break
+        # converged: a step below 1e-8 of the parameters (their uncertainties are > 1e-5 of
+        # them) or no decrease of the cost beyond rounding
+        done = np.all(np.abs(xn - x) <= 1e-8 * (1.0 + np.abs(x))) or cost - cn <= 1e-12 * cost
+        x, r, f, parts, cost = xn, rn, fn, pn, cn
+        if done:
+            break
+    return x
 
 
 def _reported(x, x_ref) -> np.ndarray:
@@ -331,15 +432,15 @@ def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: in
     nominal = row_angles(cal, u, v, led, rot)
     ang_dev = _angle_check(nominal, sub)
     ok0 = nominal["valid"]
-    base = {}
+    base, start = {}, {}
     for c in fits:
         okc = ok0 & fin[c]
-        xb = _refit(_take(nominal, okc), ys[c][okc], sw[okc], x0[c], weighting, clip)
-        base[c] = _reported(xb, x0[c])
+        start[c] = _refit(_take(nominal, okc), ys[c][okc], sw[okc], x0[c], weighting, clip)
+        base[c] = _reported(start[c], x0[c])
     shifts: dict[str, list] = {c: [] for c in fits}
     for _ in range(n_draws):
-        K, poses, lamps, scale, (hi, ho) = draw_calibration(cal, rng, sources)
-        ang = row_angles(cal, u, v, led, rot, K=K, poses=poses, lamps=lamps)
+        K, dist, poses, lamps, scale, (hi, ho) = draw_calibration(cal, rng, sources)
+        ang = row_angles(cal, u, v, led, rot, K=K, poses=poses, lamps=lamps, dist=dist)
         ok = ang["valid"] & ok0
         mult = scale
         if hi or ho:
@@ -348,10 +449,10 @@ def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: in
         a = _take(ang, ok)
         for c in fits:
             if fin[c][ok].all():
-                x = _refit(a, ys[c][ok] * mult, sw[ok], x0[c], weighting, clip)
+                x = _refit(a, ys[c][ok] * mult, sw[ok], start[c], weighting, clip)
             else:
                 keep = fin[c][ok]
-                x = _refit({k: v[keep] for k, v in a.items()}, (ys[c][ok] * mult)[keep], sw[ok][keep], x0[c],
+                x = _refit({k: v[keep] for k, v in a.items()}, (ys[c][ok] * mult)[keep], sw[ok][keep], start[c],
                            weighting, clip)
             shifts[c].append(_reported(x, x0[c]) - base[c])
     out: dict = {}
@@ -361,6 +462,7 @@ def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: in
         out[c] = {name: {"u": float(u_[i]), "dof": float(n_draws - 1)} for i, name in enumerate(PARAM_NAMES)}
     out["_meta"] = {"method": "Monte Carlo over calibration draws (GUM-S1), warm-started point-model refits",
                     "n_draws": int(n_draws), "rows": int(rows.size), "sources": list(sources), "seed": int(seed),
+                    "intrinsics_drawn": intrinsics_drawn(cal, sources),
                     "nominal_angle_max_dev_rad": ang_dev, "files": dict(cal.sources_files),
                     "stated": {"intrinsics_std_px": cal.std_K,
                                "lamps_std_mm": {str(k): s.tolist() for k, s in cal.lamps_std.items()},

@@ -185,7 +185,7 @@ def _same(x, y) -> bool:
 
 
 def stack_frames(frames: Sequence, repeats: Sequence[int], *, exposures_s: Sequence[float] | None = None,
-                 rel_tol: float = 1e-3) -> ExposureStack:
+                 rel_tol: float = 1e-3, release: bool = False) -> ExposureStack:
     """Combine the raw frames of one (rotation, LED) sequence (thesis eq. 4.31).
 
     ``frames``: :class:`~glossrig.core.calibration.raw.RawFrame` objects (cropped alike),
@@ -197,8 +197,16 @@ def stack_frames(frames: Sequence, repeats: Sequence[int], *, exposures_s: Seque
     :class:`InputError` naming the offending file: a missing exposure, an
     exposure that matches none of another repeat's, a duplicate, a
     different crop or ISO.
+
+    Linearisation (eq. 4.1-4.2) and the mean of the repeats (eq. 4.31) are done in one
+    pass per exposure on the integer raw values
+    (:func:`glossrig.core.calibration.raw.linearize_mean`: exact integer sums, one float32
+    rounding, within one float32 ulp of linearising each frame and then
+    :func:`combine_repeats`; error budget there). ``release=True`` empties each frame's
+    mosaic once its exposure is combined (for a caller that no longer needs them: the
+    frames and the stack are then never all in memory at once).
     """
-    from glossrig.core.calibration.raw import linearize
+    from glossrig.core.calibration.raw import linearize_mean
 
     frames = list(frames)
     repeats = [int(r) for r in repeats]
@@ -258,11 +266,13 @@ def stack_frames(frames: Sequence, repeats: Sequence[int], *, exposures_s: Seque
             raise InputError(f"repeat {r} lacks exposure(s) {', '.join(f'{table[j]:g} s' for j in missing)} of "
                              f"{table_src}{note}; the sequence is incomplete", path=where)
     h, w = f0.mosaic.shape
-    lin = np.empty((len(reps), n, h, w), np.float32)
-    for i, r in enumerate(reps):
-        for k in range(n):
-            lin[i, k] = linearize(slots[r][k])
-    combined, clipped = combine_repeats(lin)
+    combined = np.empty((n, h, w), np.float32)
+    clipped = np.empty((n, h, w), bool)
+    for k in range(n):          # eq. 4.1-4.2 and 4.31 in one pass per exposure (linearize_mean: error budget)
+        combined[k], clipped[k] = linearize_mean([slots[r][k].mosaic for r in reps], f0.black, f0.white)
+        if release:
+            for r in reps:
+                slots[r][k].mosaic = np.empty((0, 0), slots[r][k].mosaic.dtype)
     return ExposureStack(images=combined, exposure_s=table.copy(), clipped=clipped, repeats=len(reps),
                          cfa=np.asarray(f0.cfa).copy(), files=[[slots[r][k].path for r in reps] for k in range(n)])
 

@@ -474,6 +474,7 @@ def _fit_section(doc: _Doc, fit: dict):
         rows.append(row)
     doc.table(["channel", "rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation (rad)", "samples"], rows,
               f"Fitted parameters, standard errors {kind}")
+    _budget_section(doc, fit, chans)
     res_rows = []
     for c in chans:
         r = fit[c].get("residuals") or {}
@@ -488,6 +489,35 @@ def _fit_section(doc: _Doc, fit: dict):
                   f"RGB albedos for the shared lobe of the {sh.get('lobe_from', 'luminance')} fit (what a renderer "
                   f"with one lobe takes: alpha_x {_cell(sh.get('alpha_x'))}, alpha_y {_cell(sh.get('alpha_y'))}, "
                   f"rotation {_cell(sh.get('lobe_rotation'))} rad)")
+
+
+def _budget_section(doc: _Doc, fit: dict, chans: list[str]):
+    """The uncertainty budget (GUM) of each channel as fit.json holds it
+    (:mod:`glossrig.core.fitting.uncertainty`): per parameter its components, the
+    combined standard uncertainty and the 95 % interval; what the budget omits."""
+    rows: list[list] = []
+    omitted: set[str] = set()
+    for c in chans:
+        unc = fit[c].get("uncertainty")
+        if not isinstance(unc, dict):
+            continue
+        for k in PARAMS:
+            e = unc.get(k) or {}
+            comp = e.get("components") or {}
+            iv = e.get("interval95")
+            rows.append([c, k, e.get("value"), comp.get("noise"), comp.get("model"), comp.get("footprint"),
+                         comp.get("calibration"), e.get("combined"), e.get("coverage_factor"),
+                         "-" if iv is None else f"[{iv[0]:.4g}, {iv[1]:.4g}]"])
+        omitted.update(f"{k}: {v}" for k, v in ((unc.get("budget") or {}).get("omitted") or {}).items())
+    if not rows:
+        doc.note("Uncertainty budget: not in this fit.json (written before the budget existed).")
+        return
+    doc.table(["channel", "parameter", "value", "noise", "model", "footprint", "calibration", "combined u", "k",
+               "95 % interval"], rows,
+              "Uncertainty budget (GUM): standard uncertainties in each parameter's unit (lobe_rotation in radians), "
+              "combined = root sum of squares, 95 % interval = value +- k combined (Student t, Welch-Satterthwaite); "
+              "this, not the noise-only standard error above, is the measurement's uncertainty")
+    doc.items(sorted(f"omitted - {o}" for o in omitted))
 
 
 def _gloss_section(doc: _Doc, gloss: dict | None):

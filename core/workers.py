@@ -1,0 +1,109 @@
+"""Worker processes for independent units of work (the extraction's (rotation, LED) units).
+
+:func:`usable_cores` is the default worker count: the cores this process may run on
+(``os.sched_getaffinity``, which honours taskset and container CPU sets), not the
+machine's. :func:`process_pool` starts workers with the ``spawn`` method (a fresh
+interpreter: no lock or thread of the parent is inherited, unlike ``fork``) whose
+native thread pools (BLAS, OpenMP, OpenCV) are limited to one thread each, so that
+n workers use n cores instead of n times the thread count (oversubscription).
+:func:`ordered_results` runs jobs in such a pool, at most a few ahead of the one the
+caller is waiting for, and yields their results in job order, so a result that is
+consumed as it comes bounds the parent's memory and the order never depends on the
+worker count.
+"""
+from __future__ import annotations
+
+import os
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from typing import Any
+
+__all__ = ["usable_cores", "resolve_workers", "process_pool", "ordered_results", "single_threaded",
+           "release_memory"]
+
+
+def usable_cores() -> int:
+    """The number of cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):          # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def resolve_workers(workers: int | None) -> int:
+    """``workers`` checked (an int >= 1), or :func:`usable_cores` for None."""
+    from glossrig.core.errors import InputError
+
+    if workers is None:
+        return usable_cores()
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise InputError(f"the number of worker processes must be an integer >= 1, got {workers!r}")
+    return workers
+
+
+def single_threaded() -> None:
+    """Limit this process's native thread pools to one thread (a worker's initializer):
+    BLAS/OpenMP through threadpoolctl, OpenCV through ``cv2.setNumThreads``."""
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:                        # optional at run time: the env vars above still apply
+        pass
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def release_memory() -> None:
+    """Give the heap's free memory back to the system (glibc ``malloc_trim``; nothing
+    elsewhere): a worker that has just freed a large job's arrays would otherwise keep
+    them resident, fragmented, while it runs the next."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name) if name else None
+        if libc is not None and hasattr(libc, "malloc_trim"):
+            libc.malloc_trim(0)
+    except OSError:
+        pass
+
+
+def process_pool(workers: int) -> ProcessPoolExecutor:
+    """A pool of ``workers`` single-threaded (:func:`single_threaded`) spawned processes."""
+    import multiprocessing
+
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=single_threaded)
+
+
+def ordered_results(pool: Executor | None, fn: Callable[..., Any], jobs: Iterable[tuple],
+                    ahead: int = 1, window: int | None = None) -> Iterator[Any]:
+    """``fn(*job)`` for every job, yielded in job order. With a ``pool`` at most its
+    worker count + ``ahead`` jobs (or ``window``, when given: 1 runs one job at a time,
+    for jobs too large in memory to run side by side) are submitted beyond the results
+    already yielded (bounding the results held at once); with None each job runs here
+    when its result is asked for. An exception of a job is raised here, at its turn; the
+    jobs not yet started are then cancelled."""
+    if pool is None:
+        for job in jobs:
+            yield fn(*job)
+        return
+    limit = max(1, window) if window is not None else getattr(pool, "_max_workers", 1) + max(0, ahead)
+    pending: deque[Future] = deque()
+    it = iter(jobs)
+    try:
+        for job in it:
+            pending.append(pool.submit(fn, *job))
+            if len(pending) >= limit:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        for f in pending:
+            f.cancel()

@@ -1,0 +1,177 @@
+"""Extraction in worker processes, streamed (issue 19): the same table for any number of
+workers, a resumed parallel run equal to an uninterrupted one, and the cheaper raw path
+(crop read straight from a plainly stored DNG; linearisation and the mean of the repeats
+fused) equal to the LibRaw / float route within float32 rounding.
+
+The captures: two LEDs (9, 10) x two repeats of a sample (sample_2_6) and a lambert:0.8
+reference at scale 0.12, one rotation, 1 spp; camera and lamps from the twin's truth."""
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from conftest import RIG, camera_json_from_truth, glossrig_cli, lamps_json_from_truth, run_shared_folder
+from glossrig.core.calibration.raw import even_crop, linearize_mean, linearize_mosaic, read_raw
+from glossrig.core.errors import InputError
+from glossrig.core.radiometry.hdr import combine_repeats
+
+SIM = ("--rig", RIG, "--repeats", 2, "--scale", 0.12, "--spp", 1, "--rotations", 0, "--leds", "9,10",
+       "--no-progress")
+
+
+CAPTURES = {"ref": ("lambert:0.8", 6), "sample": ("sample_2_6", 7)}       # folder: (material, seed)
+
+
+def _make(d: Path) -> None:
+    """conftest's tiny captures with two LEDs and two repeats (camera and lamps from the truth)."""
+    for folder, (material, seed) in CAPTURES.items():
+        glossrig_cli("simulate", *SIM, "--material", material, "--seed", seed, "--out", d / folder)
+    truth = json.loads((d / "sample" / "truth.json").read_text())
+    for name, doc in (("camera.json", camera_json_from_truth(truth)),
+                      ("lamps.json", lamps_json_from_truth(truth, leds=("9", "10")))):
+        (d / name).write_text(json.dumps(doc))
+
+
+@pytest.fixture(scope="module")
+def caps(tmp_path_factory):
+    return run_shared_folder(tmp_path_factory, "two_led_captures", {"sim": SIM, "rig": RIG.read_text(), **CAPTURES},
+                             _make)
+
+
+def _inputs(d: Path):
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.calibration.lamps import load_lamps
+
+    return d / "sample", d / "ref", load_camera(d / "camera.json"), load_lamps(d / "lamps.json")
+
+
+# ------------------------------------------------------------------ workers and resume
+
+@pytest.mark.mitsuba
+def test_two_workers_give_the_table_of_one_and_a_resumed_run_equals_an_uninterrupted_one(caps, tmp_path,
+                                                                                         monkeypatch):
+    from glossrig.core.checkpoint import WorkStore, fingerprint
+    from glossrig.core.extraction.extract import extract_samples
+
+    sample, ref, cam, lamps = _inputs(caps)
+    one = extract_samples(sample, ref, cam, lamps, workers=1)
+    two = extract_samples(sample, ref, cam, lamps, workers=2)
+    assert len(one) > 1000 and set(one.led) == {9, 10}
+    pd.testing.assert_frame_equal(one, two, check_exact=True)
+    assert one.attrs["dynamic_range"] == two.attrs["dynamic_range"]
+
+    # interrupted in the parent after two of the four units were stored, workers still running
+    fp = fingerprint(options={"test": "parallel resume"})
+    saved = []
+    real_save = WorkStore.save
+
+    def interrupted(self, name, value):
+        real_save(self, name, value)
+        saved.append(name)
+        if len(saved) == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(WorkStore, "save", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        extract_samples(sample, ref, cam, lamps, workers=2, store=WorkStore(tmp_path / "w", fp))
+    first = list(saved)
+    saved.clear()
+    store = WorkStore(tmp_path / "w", fp, resume=True)
+    assert sorted(store.reused) == sorted(first)
+    monkeypatch.setattr(WorkStore, "save", lambda self, name, value: (saved.append(name), real_save(self, name, value)))
+    resumed = extract_samples(sample, ref, cam, lamps, workers=2, store=store)
+    assert len(saved) == 2 and not set(saved) & set(first)          # only the missing units were measured
+    pd.testing.assert_frame_equal(resumed, one, check_exact=True)
+
+
+@pytest.mark.mitsuba
+def test_measure_capture_in_workers_equals_in_process(caps):
+    from glossrig.core.extraction.extract import measure_capture
+
+    sample, _, cam, lamps = _inputs(caps)
+    a = measure_capture(sample, cam, lamps, workers=1)
+    b = measure_capture(sample, cam, lamps, workers=2)
+    pd.testing.assert_frame_equal(a.table, b.table, check_exact=True)
+    assert list(a.geometry) == list(b.geometry) == [0.0]
+    assert a.geometry[0.0].crop == b.geometry[0.0].crop
+
+
+def test_a_bad_worker_count_is_refused():
+    from glossrig.core.workers import resolve_workers, usable_cores
+
+    assert resolve_workers(None) == usable_cores() >= 1
+    for bad in (0, -2, 1.5, True):
+        with pytest.raises(InputError, match="worker processes"):
+            resolve_workers(bad)
+
+
+def _slow_square(x: int, delay: float) -> int:
+    import time
+
+    time.sleep(delay)
+    return x * x
+
+
+def test_ordered_results_keep_job_order_whatever_finishes_first():
+    from glossrig.core.workers import ordered_results, process_pool
+
+    jobs = [(k, 0.3 if k % 2 == 0 else 0.0) for k in range(6)]     # even jobs finish last
+    with process_pool(2) as pool:
+        assert list(ordered_results(pool, _slow_square, jobs)) == [k * k for k in range(6)]
+    assert list(ordered_results(None, _slow_square, jobs[:2])) == [0, 1]
+
+
+# ------------------------------------------------------------------ the raw path
+
+@pytest.mark.mitsuba
+def test_a_plain_dng_crop_is_read_as_libraw_decodes_it(caps):
+    """The crop read straight from the bytes of a plainly stored DNG (only when the manifest's
+    checksum made read_raw hold them) equals LibRaw's full decode cropped, with its levels."""
+    files = sorted((caps / "sample").glob("*.dng"))[:3]
+    for f in files:
+        data = f.read_bytes()
+        full = read_raw(f)                                        # LibRaw, whole image
+        w, h = full.full_size
+        crop = even_crop((w // 5 + 1, h // 3 + 1, w * 4 // 5, h - 3), (w, h))
+        fast = read_raw(f, crop=crop, sha256=hashlib.sha256(data).hexdigest())
+        x0, y0, x1, y1 = crop
+        np.testing.assert_array_equal(fast.mosaic, full.mosaic[y0:y1, x0:x1])
+        assert fast.mosaic.dtype == np.uint16 and fast.origin == (x0, y0) and fast.full_size == (w, h)
+        np.testing.assert_array_equal(fast.black, full.black)
+        np.testing.assert_array_equal(fast.cfa, full.cfa)
+        assert fast.white == full.white
+
+
+def test_linearize_mean_is_the_correctly_rounded_mean_of_the_linearised_repeats():
+    """Eq. 4.1-4.2 and 4.31 fused: within half a float32 ulp of the exact mean (float64 of
+    exact integers), within one ulp of the separate float32 route, saturation marked where a
+    repeat reached the white level, and fractional levels take the separate route exactly."""
+    rng = np.random.default_rng(3)
+    black = np.array([[600, 601], [599, 600]], np.float32)
+    white = 15520.0
+    for m in (1, 2, 3):
+        mos = [rng.integers(500, 16383, size=(37, 52), dtype=np.uint16) for _ in range(m)]
+        mos[0][:3, :3] = 15520                                   # exactly at the white level
+        mean, sat = linearize_mean(mos, black, white)
+        lo = np.tile(black.astype(np.float64), (19, 26))[:37, :52]
+        exact = np.mean([np.clip((x - lo) / (white - lo), 0, 1) for x in mos], axis=0)
+        assert mean.dtype == np.float32
+        ulp = np.spacing(np.abs(mean)).astype(np.float64)
+        assert np.all(np.abs(mean - exact) <= 0.5 * ulp + 1e-12)
+        old, clipped = combine_repeats(np.stack([linearize_mosaic(x, black, white) for x in mos])[:, None])
+        assert np.all(np.abs(mean - old[0]) <= ulp)
+        np.testing.assert_array_equal(sat, clipped[0])
+        assert sat[:3, :3].all() and (mean[:3, :3] <= 1.0).all()
+    top = [np.full((4, 4), 16000, np.uint16)] * 3
+    assert np.all(linearize_mean(top, black, white)[0] == 1.0)
+    frac = np.full((2, 2), 600.5, np.float32)
+    mos = [rng.integers(500, 16383, size=(8, 8), dtype=np.uint16) for _ in range(3)]
+    old, _ = combine_repeats(np.stack([linearize_mosaic(x, frac, white) for x in mos])[:, None])
+    np.testing.assert_array_equal(linearize_mean(mos, frac, white)[0], old[0])
+    with pytest.raises(InputError, match="white level"):
+        linearize_mean(mos, 16000, white)

@@ -1,0 +1,329 @@
+"""Coverage of the fit's uncertainty budget on the twin (issue 15, "What it must show", first bullet).
+
+    nice -n 10 python -m validation.uncertainty_coverage --work /tmp/h-d/coverage
+
+Twin measurements of :data:`MATERIALS` (Table 9.1 materials and anisotropic lobes at
+several lobe rotations), in rounds: round ``r`` measures every material once at scale
+``--scales[r]`` with its own seeds and its own **calibration** - a twin calibration made
+for that round (``validation.common.calibrate``: the camera from 12 simulated
+checkerboard views, the lamps from a simulated transparency sheet, both with their
+own seed), so each round's calibration errors against the twin's truth are real
+calibration errors, reused by the round's materials as a real lab reuses its
+calibration. Each capture has the twin's default non-idealities (the thesis's LED
+fluctuations and sensor noise). The white reference (``lambert:0.8``, one capture per
+scale) is stated to ``glossrig extract`` with an error drawn for each measurement,
+``--reference-albedo 0.8 (1 + u z)``, ``u`` = :data:`~glossrig.core.fitting.calibration_uncertainty.ALBEDO_U_REL`,
+``z ~ N(0, 1)`` (the albedo of a real reference is known to that), so the reference's
+calibration error is real too.
+
+Per measurement: ``glossrig extract`` -> the luminance fit (``fit_samples``, footprint
+model, LED aperture 0: the twin's LEDs are points) -> the calibration component
+(:func:`glossrig.core.fitting.calibration_uncertainty.calibration_component`, the same
+call ``glossrig fit`` makes, ``--draws`` draws, the reference's angular variation
+stated as 0: the twin's reference is exactly Lambertian) -> the budget with and
+without it against the twin's truth. One JSON per measurement under WORK/results/
+(a rerun reuses the finished ones, and the captures, calibrations and extractions).
+
+Report, per parameter (all measurements): how often the 95 % interval holds the truth
+(target 90-98 %) and the median half-width of the interval over the RMS of the actual
+errors (target <= 3; honest, not inflated), with and without the calibration
+component. ``--report-only`` prints the report from WORK/results/.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from validation.common import calibrate, capture, extract
+
+PARAMS = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
+#: Table 9.1 materials (scenes/materials) and anisotropic lobes at three lobe rotations.
+MATERIALS = ("sample_0_6", "sample_2_6", "sample_4_10", "sample_5_6", "polyethylene", "sanded_original",
+             "brushed_original",
+             "ward:rho_d=0.05,rho_s=0.012,alpha_x=0.09,alpha_y=0.035,lobe_rotation=0.4",
+             "ward:rho_d=0.05,rho_s=0.012,alpha_x=0.09,alpha_y=0.035,lobe_rotation=1.2",
+             "ward:rho_d=0.05,rho_s=0.012,alpha_x=0.09,alpha_y=0.035,lobe_rotation=2.0")
+REFERENCE_ALBEDO = 0.8
+
+
+def plan(scales: list[float], materials=MATERIALS, seed: int = 0) -> list[dict]:
+    """The measurements: round ``r`` (its scale ``scales[r]`` and calibration ``r``) x material."""
+    from glossrig.core.fitting.calibration_uncertainty import ALBEDO_U_REL
+
+    out = []
+    for r, s in enumerate(scales):
+        for k, m in enumerate(materials):
+            i = r * len(materials) + k
+            z = float(np.random.default_rng([seed, i]).standard_normal())
+            out.append({"id": f"r{r}_m{k}", "round": r, "material": m, "scale": float(s), "seed": 1000 + 37 * i + seed,
+                        "albedo_stated": REFERENCE_ALBEDO * (1 + ALBEDO_U_REL * z)})
+    return out
+
+
+@contextmanager
+def _locked(path: Path):
+    """An exclusive lock (fcntl) on PATH while the block runs: a calibration or reference
+    that several processes of one study need is made by one of them."""
+    import fcntl
+
+    with open(path, "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _claim(work: Path, name: str) -> bool:
+    """Take the measurement NAME for this process (a claim file made atomically); False when
+    another process of the study has it. A claim left by an interrupted run is taken over
+    when its process is gone."""
+    import os
+
+    d = work / "claims"
+    d.mkdir(exist_ok=True)
+    path = d / name
+    try:
+        fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+    except FileExistsError:
+        try:
+            pid = int(path.read_text() or 0)
+            os.kill(pid, 0)
+            return False                    # its process is alive
+        except (ValueError, ProcessLookupError):
+            path.write_text(str(os.getpid()))
+            return True
+        except PermissionError:
+            return False
+    with os.fdopen(fd, "w") as f:
+        f.write(str(os.getpid()))
+    return True
+
+
+def _slug(s: float) -> str:
+    return f"{s:g}".replace(".", "p")
+
+
+def calibration_errors(cal_dir: Path, truth_capture: Path) -> dict:
+    """The round's calibration against the twin's truth (focal lengths in %, principal
+    point in px, lamp positions in mm)."""
+    from glossrig.core.capture import read_truth
+
+    t = read_truth(truth_capture)
+    cam = json.loads((cal_dir / "camera.json").read_text())
+    K = np.array(t["camera_matrix"])
+    lam = json.loads((cal_dir / "lamps.json").read_text())["lamps_mm"]
+    err = {k: float(np.linalg.norm(np.subtract(p, t["led_positions_mm"][k]))) for k, p in lam.items()
+           if k in t["led_positions_mm"]}
+    return {"fx_percent": 100 * (cam["fx"] / K[0, 0] - 1), "fy_percent": 100 * (cam["fy"] / K[1, 1] - 1),
+            "cx_px": cam["cx"] - K[0, 2], "cy_px": cam["cy"] - K[1, 2], "lamp_error_mm": err}
+
+
+def measure(spec: dict, work: Path, leds: str, rotations: str, draws: int) -> dict:
+    from glossrig.core.capture import read_truth
+    from glossrig.core.fitting import calibration_uncertainty as cu
+    from glossrig.core.fitting.fit import fit_samples, parameter_errors
+    from glossrig.core.fitting.uncertainty import coverage
+    from glossrig.core.samples import read_samples
+
+    s = spec["scale"]
+    cal_dir = work / f"cal_round{spec['round']}"
+    with _locked(work / f".cal_round{spec['round']}.lock"):      # shared with the other --part processes
+        cam, lamps = calibrate(cal_dir, s, 500 + 11 * spec["round"], lamp_rotations="0", leds=leds)
+    with _locked(work / f".reference_{_slug(s)}.lock"):
+        ref = capture(work / f"reference_{_slug(s)}", f"lambert:{REFERENCE_ALBEDO}", s, 7 + int(1000 * s),
+                      rotations, leds=leds)
+    cap = capture(work / "captures" / spec["id"], spec["material"], s, spec["seed"], rotations, leds=leds)
+    sp = extract(cap, ref, cam, lamps, work / "samples" / f"{spec['id']}.parquet",
+                 "--reference-albedo", f"{spec['albedo_stated']:.9g}")
+    truth = read_truth(cap)["material"]["ward"]
+    df = read_samples(sp)
+    t0 = time.perf_counter()
+    f = fit_samples(df, channels=["luminance"], led_aperture=0.0).fits["luminance"]
+    t_fit = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    cal = cu.load_inputs(cam, lamps, cap, sorted(df["rotation"].unique()))
+    cal.angular_u = 0.0             # the twin's reference is exactly Lambertian (module docstring)
+    comp = cu.calibration_component(df, {"luminance": f.params}, cal, n_draws=draws, seed=spec["seed"])
+    t_cal = time.perf_counter() - t0
+    with_cal = cu.add_calibration(f.uncertainty, comp["luminance"])
+    return {"spec": spec, "truth": truth, "params": f.params.as_dict(), "rows": len(df),
+            "rel_err": parameter_errors(f.params, truth), "fit_s": t_fit, "calibration_s": t_cal,
+            "calibration_meta": {k: v for k, v in comp["_meta"].items() if k != "files"},
+            "calibration_errors": calibration_errors(cal_dir, cap),
+            "without_calibration": {"uncertainty": f.uncertainty, "coverage": coverage(f.uncertainty, truth)},
+            "with_calibration": {"uncertainty": with_cal, "coverage": coverage(with_cal, truth)}}
+
+
+def summarise(results: list[dict], key: str = "with_calibration") -> dict:
+    """Per parameter: ``n``, ``covered`` (count), ``coverage``, ``median_half_width`` over
+    ``rms_error`` (relative to the truth for albedos and alphas, radians for the rotation)."""
+    out = {}
+    for p in PARAMS:
+        cov, hw, err = [], [], []
+        for r in results:
+            e, c = r[key]["uncertainty"][p], r[key]["coverage"][p]
+            if c["covered"] is None or e["interval95"] is None:
+                continue
+            norm = 1.0 if p == "lobe_rotation" else abs(_canonical_truth(r["truth"])[p])
+            cov.append(bool(c["covered"]))
+            hw.append(e["coverage_factor"] * e["combined"] / norm)
+            err.append(c["error"] / norm)
+        n = len(cov)
+        rms = math.sqrt(float(np.mean(np.square(err)))) if n else math.nan
+        med = float(np.median(hw)) if n else math.nan
+        out[p] = {"n": n, "covered": int(sum(cov)), "coverage": sum(cov) / n if n else math.nan,
+                  "median_half_width": med, "rms_error": rms, "ratio": med / rms if rms > 0 else math.inf}
+    return out
+
+
+def _canonical_truth(truth: dict) -> dict:
+    from glossrig.core.fitting.fit import canonical
+    from glossrig.core.models.ward import WardParams
+
+    t, _ = canonical(WardParams(**{k: float(truth[k]) for k in PARAMS}))
+    return t.as_dict()
+
+
+def report(results: list[dict], command: str) -> str:
+    scales = ", ".join(sorted({f"{r['spec']['scale']:g}" for r in results}))
+    lines = [f"Command: `{command}`", "", f"{len(results)} measurements, "
+             f"{len({r['spec']['material'] for r in results})} materials, scales {scales}.", ""]
+    for key, title in (("with_calibration", "budget with the calibration component"),
+                       ("without_calibration", "budget without the calibration component (noise, model, footprint)")):
+        s = summarise(results, key)
+        lines += [f"**{title}**", "",
+                  "| parameter | n | 95 % covers | coverage | median half-width (rel.; rot: rad) | RMS error | "
+                  "half-width / RMS |", "|---|---|---|---|---|---|---|"]
+        for p, v in s.items():
+            lines.append(f"| {p} | {v['n']} | {v['covered']} | {100 * v['coverage']:.1f} % | "
+                         f"{v['median_half_width']:.3g} | {v['rms_error']:.3g} | {v['ratio']:.2f} |")
+        tot = sum(v["covered"] for v in s.values()), sum(v["n"] for v in s.values())
+        lines += ["", f"all parameters: {tot[0]} of {tot[1]} ({100 * tot[0] / max(tot[1], 1):.1f} %)", ""]
+    rounds = {}
+    for r in results:
+        rounds.setdefault(r["spec"]["round"], r)
+    lines += ["| round | scale | fx error | fy error | cx error (px) | cy error (px) | lamp errors (mm) |",
+              "|---|---|---|---|---|---|---|"]
+    for k, r in sorted(rounds.items()):
+        e = r["calibration_errors"]
+        lines.append(f"| {k} | {r['spec']['scale']:g} | {e['fx_percent']:+.3f} % | {e['fy_percent']:+.3f} % | "
+                     f"{e['cx_px']:+.2f} | {e['cy_px']:+.2f} | "
+                     f"{min(e['lamp_error_mm'].values()):.2f}-{max(e['lamp_error_mm'].values()):.2f} |")
+    return "\n".join(lines)
+
+
+def design_comparison(results: list[dict], leds: str, rotations: str, scale: float = 0.1) -> tuple[str, dict]:
+    """``glossrig design errors``' combined uncertainty (:func:`glossrig.core.design.error_budget.design_budget`,
+    the study's LEDs and rotations, LED aperture 0 as the twin's) against the RMS of the
+    actual errors of the study's measurements at ``scale``, for the Table 9.1 materials
+    (the named ones of :data:`MATERIALS`): per material and parameter the ratio
+    predicted / actual RMS, and per parameter over the materials pooled (root mean
+    square of the predictions against that of the errors)."""
+    from glossrig.core.design.error_budget import design_budget
+    from glossrig.core.design.placement import parse_materials
+    from glossrig.core.rig import default_rig_path, load_rig
+
+    named = [m for m in MATERIALS if not m.startswith("ward:")]
+    rig = load_rig(default_rig_path())
+    pred = design_budget(rig, parse_materials(",".join(named)), rotations=[float(r) for r in rotations.split(",")],
+                         led_ids=[int(i) for i in leds.split(",")], scale=scale, led_aperture=0.0)
+    lines = ["| material | n | " + " | ".join(f"{p}: predicted / RMS" for p in PARAMS) + " |",
+             "|---|---|" + "---|" * len(PARAMS)]
+    pooled: dict = {p: [[], []] for p in PARAMS}
+    for m in named:
+        rs = [r for r in results if r["spec"]["material"] == m and r["spec"]["scale"] == scale]
+        if not rs:
+            continue
+        cells = []
+        for p in PARAMS:
+            t = _canonical_truth(rs[0]["truth"])
+            norm = 1.0 if p == "lobe_rotation" else abs(t[p])
+            err = [r["with_calibration"]["coverage"][p]["error"] / norm for r in rs]
+            rms = math.sqrt(float(np.mean(np.square(err))))
+            u = pred[m]["combined"][p]
+            u = None if u is None else u / norm
+            pooled[p][0].append(rms ** 2)
+            pooled[p][1].append(np.nan if u is None else u ** 2)
+            cells.append("-" if u is None else f"{u:.3g} / {rms:.3g} = {u / rms:.2f}")
+        lines.append(f"| {m} | {len(rs)} | " + " | ".join(cells) + " |")
+    summary = {}
+    for p, (e2, u2) in pooled.items():
+        if e2:
+            summary[p] = math.sqrt(float(np.nanmean(u2))) / math.sqrt(float(np.mean(e2)))
+    lines += ["", "pooled over the materials (RMS prediction / RMS error): "
+              + ", ".join(f"{p} {v:.2f}" for p, v in summary.items())]
+    return "\n".join(lines), summary
+
+
+def load_results(work: Path) -> list[dict]:
+    return [json.loads(p.read_text()) for p in sorted((work / "results").glob("*.json"))]
+
+
+def main(argv=None) -> list[dict]:
+    from glossrig.core.atomic import atomic_write_json
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", required=True, help="working folder (captures, calibrations, results/*.json)")
+    ap.add_argument("--scales", default="0.1,0.1,0.1,0.1", help="one scale per round (default 0.1,0.1,0.1,0.1)")
+    ap.add_argument("--leds", default="8,9,10,11")
+    ap.add_argument("--rotations", default="0")
+    ap.add_argument("--draws", type=int, default=24, help="calibration draws per measurement (default 24)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--limit", type=int, default=None, help="measure at most this many (in plan order)")
+    ap.add_argument("--rounds", default=None,
+                    help="measure only these rounds (comma-separated indices; to share the work between processes, "
+                         "each round's calibration made by one of them)")
+    ap.add_argument("--part", default=None, metavar="K/N",
+                    help="measure only every N-th measurement from the K-th (0-based): N processes share the study")
+    ap.add_argument("--reverse", action="store_true", help="measure in the reverse order")
+    ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--design", action="store_true",
+                    help="also compare glossrig design errors' combined uncertainty with the actual errors")
+    a = ap.parse_args(argv)
+    work = Path(a.work)
+    for sub in ("results", "samples", "captures"):
+        (work / sub).mkdir(parents=True, exist_ok=True)
+    command = ("python -m validation.uncertainty_coverage --work " + str(work) + f" --scales {a.scales} "
+               f"--leds {a.leds} --rotations={a.rotations} --draws {a.draws} --seed {a.seed}")
+    if not a.report_only:
+        specs = plan([float(s) for s in a.scales.split(",")], seed=a.seed)
+        if a.rounds:
+            keep = {int(r) for r in a.rounds.split(",")}
+            specs = [s for s in specs if s["round"] in keep]
+        # material by material across the rounds: an interrupted study is balanced over the
+        # rounds, and every round's calibration is made at the start
+        specs.sort(key=lambda s: (int(s["id"].split("_m")[1]), s["round"]))
+        if a.part:
+            k, n = (int(x) for x in a.part.split("/"))
+            specs = specs[k::n]
+        if a.reverse:
+            specs = specs[::-1]
+        specs = specs[:a.limit]
+        for k, spec in enumerate(specs):
+            out = work / "results" / f"{spec['id']}.json"
+            if out.exists() or not _claim(work, spec["id"]):
+                continue
+            t0 = time.perf_counter()
+            res = measure(spec, work, a.leds, a.rotations, a.draws)
+            res["wall_s"] = time.perf_counter() - t0
+            atomic_write_json(out, res)
+            print(f"[{k + 1}/{len(specs)}] {spec['id']} {spec['material']} scale {spec['scale']:g}: "
+                  f"{res['wall_s']:.0f} s", flush=True)
+    results = load_results(work)
+    print(report(results, command))
+    if a.design:
+        text, _ = design_comparison(results, a.leds, a.rotations)
+        print("\n`glossrig design errors` (combined) against the actual errors at scale 0.1:\n")
+        print(text)
+    return results
+
+
+if __name__ == "__main__":
+    main()
