@@ -12,6 +12,10 @@ manifest's checksums are updated. The stated black level is left unchanged.
 * ``black_level_offset=b``: every DN + b (the sensor's true black differs by b).
 * ``sensor_nonlinearity=c``: x -> x (1 - c x / (white - black)) for the signal x above black
   (negative read noise left as it is; saturated pixels stay saturated).
+* ``axis_step=s``: the signal above black times 1 + s in the right half of the image (x at or
+  beyond the middle; on the thesis rig the cylinder axis runs along the image's x axis, so this
+  is a step half-way along the axis: a smudge or crease of the wrapped sample). No cause of
+  diagnose's catalogue models it: diagnose must call it "unexplained", along the axis (issue 14).
 """
 from __future__ import annotations
 
@@ -24,7 +28,7 @@ import numpy as np
 from glossrig.core.capture import load_manifest
 from glossrig.core.errors import InputError
 
-REWRITABLE = ("black_level_offset", "sensor_nonlinearity")
+REWRITABLE = ("black_level_offset", "sensor_nonlinearity", "axis_step")
 CFA_NAMES = {0: "R", 1: "G", 2: "B"}
 
 
@@ -46,6 +50,10 @@ def rewrite_capture(src, dst, effect: str, value: float) -> Path:
         black = black[:dn.shape[0], :dn.shape[1]]
         if effect == "black_level_offset":
             dn = dn + value
+        elif effect == "axis_step":
+            x = fr.origin[0] + np.arange(dn.shape[1])[None, :]
+            step = np.where(x >= fr.full_size[0] // 2, 1.0 + value, 1.0)
+            dn = np.where(dn >= fr.white, dn, black + (dn - black) * step)
         else:
             # the signal above black, read noise included: compressing max(x, 0) instead would
             # move every dark pixel's negative noise to 0, a +1.1 DN offset (measured) that then

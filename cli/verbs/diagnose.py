@@ -5,15 +5,18 @@ material from a Ward fit of this capture or --fit, the sensor from the raws),
 then fits every named cause of the catalogue (stray_light, vignetting,
 sample_rotation_offset, fresnel, led_emission, led_position_error,
 sample_radius_error and the material/reference models - ggx_lobe, beckmann_lobe,
-flexible_material, reference_brdf - in BRDF space; black_level_offset,
-sensor_nonlinearity, shutter_error, led_drift in frame space; hot_pixels in
-pixel space) on training folds and scores it on held-out folds split by LED, by
+grazing_lobe, flexible_material, reference_brdf - in BRDF space; black_level_offset,
+sensor_nonlinearity, channel_response, shutter_error, led_drift in frame space;
+hot_pixels in pixel space) on training folds and scores it on held-out folds split by LED, by
 pixel-row halves (per-LED parameters) or by exposure. Residuals are divided by a
 calibrated error model (HDR noise plus a model-error term fitted on the training
 folds). Sensor-level causes are named first (light and geometry cannot bend the
 raw exposure series); a BRDF-space instrument cause must also beat a flexible
 material model on held-out LEDs. The verdict is "unexplained" when structured
-residual remains that no cause explains.
+residual remains that no cause explains (also when it remains in image or cylinder
+position after the named instrument cause). A row that misses a colour channel
+(out of the capture's dynamic range) keeps its other channels; the missing one is
+predicted by that channel's base model (report.json meta.missing_channels).
 Writes REPORT_DIR/report.json ({"base_error", "calibration", "verdict",
 "causes": [... each with its "kind"], "unexplained": [...]}, causes sorted by
 gain), report.md and the residual plots.

@@ -41,6 +41,7 @@ from glossrig.core.models.angles import ANGLE_COLUMNS
 from glossrig.core.extraction.cylinder import SurfaceSamples, sample_angles
 from glossrig.core.models.ward import WardParams, ward_from_angles
 
+from glossrig.core.diagnose.channels import fill_missing_channels
 from glossrig.core.diagnose.data import BrdfData
 
 GAIN_THRESHOLD = 0.02      # relative held-out gain a BRDF-space cause must beat (null captures stay below)
@@ -77,7 +78,10 @@ class CauseResult:
     note: str = ""
     magnitude: float | None = None  # in the twin catalogue's unit, when it maps onto one
     blocked_by: str | None = None   # the material model that explains as much (instrument causes)
-    vs_material: float | None = None  # held-out gain over the flexible material model
+    vs_material: float | None = None  # held-out gain over the best material model (flexible.material_first)
+    #: the extended model fitted on all rows, predicted for every row (BRDF space; not written out):
+    #: what remains after it is tested for structure (unexplained.py)
+    prediction: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def kind(self) -> str:
@@ -127,6 +131,7 @@ class BrdfModel:
     rows: np.ndarray                         # indices into data.table used
     cols: dict = field(default_factory=dict)
     calibration: dict = field(default_factory=dict)   # the base model's held-out error (error_model)
+    channel_fill: dict = field(default_factory=dict)  # missing channels predicted per channel (channels.py)
 
     @classmethod
     def build(cls, data: BrdfData, fit: WardParams, seed: int = 0) -> BrdfModel:
@@ -140,6 +145,8 @@ class BrdfModel:
              [("y", "f"), ("relvar", "relvar"), ("cos_in", "cos_in"), ("u", "u"), ("v", "v"), ("led", "led"),
               ("rotation", "rotation"), ("signal", "S")] + [(a, a) for a in ANGLE_COLUMNS]}
         c["L"] = ward_from_angles(c["theta_in"], c["theta_out"], c["theta_h"], c["phi_h"], lobe)
+        # a row missing a colour channel keeps its valid ones; the missing one is predicted (channels.py)
+        c["y"], c["relvar"], m.channel_fill = fill_missing_channels(s, c["L"], c["relvar"])
         m.cols = c
         c["sigma"] = m.noise()
         return m
@@ -186,10 +193,16 @@ class BrdfModel:
         sig = c.get("sigma", np.maximum(np.abs(c["y"]), 1e-3))
         A = X[train] / sig[train, None]
         b = c["y"][train] / sig[train]
-        coef, *_ = np.linalg.lstsq(A, b, rcond=None)
+        # normal equations (2-3 columns: a k x k solve instead of an SVD of the n x k matrix; speed),
+        # the SVD where they are ill-conditioned
+        AtA = A.T @ A
+        if np.linalg.cond(AtA) < 1e12:
+            coef = np.linalg.solve(AtA, A.T @ b)
+        else:
+            coef, *_ = np.linalg.lstsq(A, b, rcond=None)
         r = b - A @ coef
         dof = max(len(b) - len(coef), 1)
-        cov = np.linalg.pinv(A.T @ A) * float(r @ r) / dof
+        cov = np.linalg.pinv(AtA) * float(r @ r) / dof
         return coef, X @ coef, cov
 
     def folds(self) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -229,7 +242,14 @@ def _brdf_scalar(m: BrdfModel, make: Callable[[float], tuple], bounds: tuple[flo
             _, pr, _ = m.solve_linear(basis, train, fac)
             return chi2((c["y"] - pr)[train], c["sigma"][train])
 
-        costs = np.array([train_cost(p) for p in grid])
+        # each grid point solved once: its training cost (the search) and its held-out error (the profile)
+        costs = np.empty(grid_n)
+        for j, p in enumerate(grid):
+            b2, f2 = make(p)
+            _, pg, _ = m.solve_linear(b2, train, f2)
+            r = (c["y"] - pg) / c["sigma"]
+            costs[j] = float(np.mean(r[train] ** 2))
+            prof[j] += float(np.mean(r[test] ** 2)) * test.sum()
         k = int(np.argmin(costs))
         lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, grid_n - 1)]
         p_best = minimize_scalar(train_cost, bounds=(lo, hi), method="bounded",
@@ -237,10 +257,6 @@ def _brdf_scalar(m: BrdfModel, make: Callable[[float], tuple], bounds: tuple[flo
         basis, fac = make(p_best)
         _, pr, _ = m.solve_linear(basis, train, fac)
         e1 = chi2((c["y"] - pr)[test], c["sigma"][test])
-        for j, p in enumerate(grid):
-            b2, f2 = make(p)
-            _, pg, _ = m.solve_linear(b2, train, f2)
-            prof[j] += chi2((c["y"] - pg)[test], c["sigma"][test]) * test.sum()
         base_res.append(e0 * test.sum())
         ext_res.append(e1 * test.sum())
         gains.append((e0 - e1) / e0)
@@ -250,7 +266,8 @@ def _brdf_scalar(m: BrdfModel, make: Callable[[float], tuple], bounds: tuple[flo
 
 
 def _scalar_all(m: BrdfModel, make, bounds: tuple[float, float]):
-    """The parameter fitted on all rows, with its standard error from the curvature of chi^2."""
+    """The parameter fitted on all rows, with its standard error from the curvature of chi^2,
+    and the model's prediction for every row."""
     c = m.cols
     allr = np.ones(len(c["y"]), bool)
 
@@ -267,7 +284,8 @@ def _scalar_all(m: BrdfModel, make, bounds: tuple[float, float]):
     curv = (cost(p + h) - 2 * cost(p) + cost(p - h)) / h ** 2
     red = cost(p) / max(len(c["y"]) - 3, 1)
     se = math.sqrt(2 * red / curv) if curv > 0 else float("nan")
-    return float(p), se
+    basis, fac = make(p)
+    return float(p), se, m.solve_linear(basis, allr, fac)[1]
 
 
 def vignetting_factor(u, v, size, pp):
@@ -283,8 +301,12 @@ def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
     of causes as it finishes (progress)."""
     import time
 
-    t0 = time.time()
+    t0, c0 = time.time(), time.process_time()
     say = log or (lambda *a: None)
+
+    def took() -> str:
+        return f"{time.time() - t0:.0f} s, CPU {time.process_time() - c0:.0f} s"
+
     c = m.cols
     d = m.data
     out = []
@@ -336,9 +358,10 @@ def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
     cache = {}
 
     def make_rot(delta):
-        key = round(float(delta), 6)
+        # on a 0.01-degree lattice, so that the folds' searches share the re-evaluated geometry (speed)
+        key = round(float(delta), 2)
         if key not in cache:
-            cache[key] = lobe_rot(delta)
+            cache[key] = lobe_rot(key)
         return [one, cache[key]], None
 
     r = _scalar_cause(m, "sample_rotation_offset", doc, make_rot, (-20.0, 20.0), "delta_deg", "degrees", grid_n=17)
@@ -365,11 +388,11 @@ def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
 
     from glossrig.core.diagnose.flexible import flexible_cause, material_first
 
-    say(f"  light and rotation causes done ({time.time() - t0:.0f} s)")
+    say(f"  light and rotation causes done ({took()})")
     out = out + geometry_causes(m)
-    say(f"  rig geometry causes done ({time.time() - t0:.0f} s)")
+    say(f"  rig geometry causes done ({took()})")
     out = out + material_causes(m)
-    say(f"  material and reference models done ({time.time() - t0:.0f} s)")
+    say(f"  material and reference models done ({took()})")
     out = out + [flexible_cause(m)]
     material_first(out)
     return out
@@ -394,17 +417,17 @@ def _linear_cause(m: BrdfModel, name, doc, basis, pname, unit) -> CauseResult:
         ext_res += e1 * test.sum()
         n += test.sum()
         gains.append((e0 - e1) / e0)
-    coef, _, cov = m.solve_linear(basis, np.ones(len(c["y"]), bool))
+    coef, pred, cov = m.solve_linear(basis, np.ones(len(c["y"]), bool))
     val, se = float(coef[-1]), float(math.sqrt(max(cov[-1, -1], 0)))
     return CauseResult(name, "brdf", doc, {pname: val, "unit": unit}, {pname: se}, ext_res / n, base_res / n,
-                       gains, 1, magnitude=val)
+                       gains, 1, magnitude=val, prediction=pred)
 
 
 def _scalar_cause(m: BrdfModel, name, doc, make, bounds, pname, unit, grid_n=25) -> CauseResult:
     e0, e1, gains, est, prof = _brdf_scalar(m, make, bounds, grid_n)
-    p, se = _scalar_all(m, make, bounds)
+    p, se, pred = _scalar_all(m, make, bounds)
     r = CauseResult(name, "brdf", doc, {pname: p, "unit": unit, "fold_estimates": est}, {pname: se}, e1, e0,
-                    gains, 1, profile=prof, magnitude=p)
+                    gains, 1, profile=prof, magnitude=p, prediction=pred)
     if _flat(prof):
         r.identifiable = False
         r.note = (f"held-out error varies by less than {GAIN_THRESHOLD:.0%} over {pname} in "

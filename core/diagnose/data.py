@@ -52,6 +52,14 @@ class LedFrames:
     black: np.ndarray       # (h, w) stated black level per pixel
     origin: tuple[int, int]
     files: list = field(default_factory=list)
+    cfa: np.ndarray | None = None   # 2x2 colour indices (0 R, 1 G, 2 B) of dn[..., 0:2, 0:2]; None: RGGB
+
+    def colours(self) -> np.ndarray:
+        """(h, w) colour index of every pixel of the crop (the crop keeps the CFA phase)."""
+        from glossrig.core.calibration.demosaic import channel_index
+
+        cfa = np.array([[0, 1], [1, 2]]) if self.cfa is None else np.asarray(self.cfa)
+        return channel_index(self.dn.shape[1:], cfa)
 
 
 @dataclass
@@ -91,13 +99,16 @@ def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progre
         s[f"relvar_S_{c}"] = s[f"var_{c}"] / np.maximum(s[c], 1e-12) ** 2
     t = diffuse_normalize(s, mr.table, albedo=albedo)
     t = t.reset_index(drop=True)
+    # luminance BRDF; NaN where a channel is missing (out of the capture's dynamic range): such a
+    # row keeps its valid channels and BrdfModel.build predicts the missing one (issue 14, item 1)
     t["f"] = _lum(t)
-    t["S"] = _lum(t, "S_")
-    t["R"] = albedo / np.pi * t["S"] / np.where(t["f"] > 0, t["f"], np.nan)
+    t["S"] = valid_luminance(t, "S_")
     # relative variance of the measured luminance: sample and reference HDR variances of each
     # channel (a ratio's relative variances add), combined with the Rec. 709 weights
     t["relvar"] = luminance_relvar(t, mr.table)
-    t = t[np.isfinite(t[["f", "S", "R"]]).all(axis=1) & (t.R > 0)].reset_index(drop=True)
+    complete_ok = np.isfinite(t["f"]) & (t["f"] > 0)
+    partial = ~np.isfinite(t["f"]) & np.isfinite(t[["r", "g", "b"]]).any(axis=1)
+    t = t[(complete_ok | partial) & np.isfinite(t["S"]) & (t["S"] > 0)].reset_index(drop=True)
     if len(t) < 200:
         raise InputError(f"only {len(t)} usable BRDF samples: too few to diagnose", path=Path(sample_dir))
     man = load_manifest(sample_dir)
@@ -109,6 +120,17 @@ def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progre
         patch_uv[rot] = (g.crop[0] + float(jj.mean()), g.crop[1] + float(ii.mean()))
     return BrdfData(t, ms, albedo, tuple(fr.full_size), (cam.cx, cam.cy), patch_uv, dict(lamps),
                     camera=camera_arrays(cam))
+
+
+def valid_luminance(df, prefix="") -> np.ndarray:
+    """Rec. 709 luminance of each row's valid (finite) channels, renormalised by the weights of
+    those channels (``sum_valid LUMA_c x_c / sum_valid LUMA_c``): a signal level for rows that
+    miss a channel; NaN where none is valid."""
+    x = df[[prefix + "r", prefix + "g", prefix + "b"]].to_numpy(float)
+    ok = np.isfinite(x)
+    w = np.where(ok, LUMA, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(ok.any(axis=1), np.sum(w * np.nan_to_num(x), axis=1) / w.sum(axis=1), np.nan)
 
 
 def luminance_relvar(t: pd.DataFrame, reference: pd.DataFrame) -> np.ndarray:
@@ -164,7 +186,7 @@ def load_frames(sample_dir, measured: Measured) -> FrameData:
             leds.append(LedFrames(led, rot, np.stack([f.mosaic.astype(np.float32) for f in frames]),
                                   np.array([im.exposure_s for im in seq]),
                                   np.array([_seconds(im.time) - t0 for im in seq]), black, f0.origin,
-                                  [im.file for im in seq]))
+                                  [im.file for im in seq], np.asarray(f0.cfa)))
     if white is None or iso is None:
         raise InputError("no single-LED sequence frames with an ISO in the manifest", path=man.path)
     k = sen.electrons_per_dn_iso100 * 100.0 / float(iso)

@@ -30,6 +30,17 @@ held-out error, divided by the same noise-plus-model-error sigma, is lower than 
 model's in every fold and by more than its space's stated threshold
 (:data:`glossrig.core.diagnose.catalogue.THRESHOLDS`): it must beat the base model by more
 than the base model's own misfit explains, since that misfit is already part of sigma.
+
+Which coefficients the significance tests use: the sigma every cause's held-out error is
+divided by (:meth:`glossrig.core.diagnose.catalogue.BrdfModel.noise`) holds the model-error
+coefficients fitted on **all** rows, not re-fitted per fold - one sigma for every fold, so
+that within a fold the base model and every cause are weighed alike, and a cause's gain is
+not a change of weights. The held-out rows thus take part in fitting three variance
+coefficients (a, b, c) of a smooth function of the prediction, the lobe and its slope, not
+in fitting any cause; the calibration check above (:func:`heldout_calibration`) fits them
+per fold and reports that figure (1.01 on three ideal twin captures of sample_2_6). The
+model-error term is a variance of the base model's misfit; the causes compete on the
+residual it leaves.
 """
 from __future__ import annotations
 

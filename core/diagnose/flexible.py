@@ -20,9 +20,9 @@ the image or on the cylinder, on which LED lit it beyond its angles, or on the e
 
 Rule (:func:`material_first`): an instrument cause of BRDF space (stray light,
 vignetting, LED emission and position, sample radius and rotation) may be named only if
-its pooled held-out error is lower than the flexible model's by more than its own
-threshold: it must win through a signature no material produces. Otherwise it is
-``blocked_by`` the flexible model. A significant flexible model is reported as the
+its pooled held-out error is lower than the flexible model's - or any material model's,
+where one predicts better - by more than its own threshold: it must win through a
+signature no material produces. Otherwise it is ``blocked_by`` that material model. A significant flexible model is reported as the
 material cause ``flexible_material`` naming the variable its departure follows
 (:func:`describe`), e.g. "rises toward grazing theta_in".
 """
@@ -149,25 +149,30 @@ def flexible_cause(m):
               "profile": desc["profile"], "rho_d": float(coef[0]), "rho_s": float(coef[1]),
               "unit": "relative departure from the Ward fit"}
     r = CauseResult("flexible_material", "brdf", doc, params, {}, e1s / n, e0s / n, gains, len(coef) - 2,
-                    magnitude=desc["effect"])
+                    magnitude=desc["effect"], prediction=pf)
     r.note = f"material departure {desc['description']} (by {desc['effect']:.1%})"
     m.flexible_prediction = pf
     return r
 
 
 def material_first(causes) -> None:
-    """Block each BRDF-space instrument cause that does not beat the flexible material model
-    on held-out folds by more than its own threshold (sets ``blocked_by`` and a note)."""
-    flex = next((c for c in causes if c.name == "flexible_material"), None)
-    if flex is None:
+    """Block each BRDF-space instrument cause that does not beat the material models on
+    held-out folds by more than its own threshold (sets ``blocked_by`` and a note). The bar
+    is the material model with the lowest held-out error: the flexible one, or a named one
+    (GGX, Beckmann, the grazing term, ...) where that predicts better - a grazing rise of the
+    diffuse term is a function of theta_in and theta_out, which the flexible model's theta_h
+    alone does not follow, while stray light also rises toward grazing incidence."""
+    mats = [c for c in causes if c.kind == "material" and c.space == "brdf"]
+    if not mats:
         return
+    flex = min(mats, key=lambda c: c.error)
     for c in causes:
         if c.kind != "instrument" or c.space != "brdf":
             continue
         c.vs_material = (flex.error - c.error) / flex.error if flex.error > 0 else 0.0
         if not c.vs_material > c.threshold:
-            c.blocked_by = "flexible_material"
+            c.blocked_by = flex.name
             if c.significant:
                 c.note = (c.note + "; " if c.note else "") + (
-                    f"a smooth material departure explains as much (held-out error {c.error:.4g} vs the flexible "
-                    f"material model's {flex.error:.4g}): not named as an instrument fault")
+                    f"a material departure explains as much (held-out error {c.error:.4g} vs {flex.name}'s "
+                    f"{flex.error:.4g}): not named as an instrument fault")

@@ -145,9 +145,11 @@ class Geometry:
         return L, F
 
 
-def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude, params_of, unit) -> CauseResult:
+def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude, params_of, unit,
+                  owners) -> CauseResult:
     """A cause with a parameter vector (some per LED): fitted on one half of the sample's pixel
-    rows by variable projection (rho_d, rho_s linear), scored on the other half."""
+    rows by variable projection (rho_d, rho_s linear), scored on the other half. ``owners``: per
+    parameter, the LED whose rows alone it changes (None: every row)."""
     m = geo.m
     c = m.cols
     rng = np.random.default_rng(0)
@@ -168,8 +170,42 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
 
     def fit(train_idx):
         sub = train_idx if len(train_idx) <= FIT_ROWS else np.sort(rng.choice(train_idx, FIT_ROWS, False))
-        fun = lambda x: (c["y"][sub] - predict(x, sub, sub)) / c["sigma"][sub]
-        return least_squares(fun, x0, bounds=(lo, hi), x_scale=np.maximum(hi - lo, 1e-9) / 20, diff_step=1e-3,
+        y, sig = c["y"][sub], c["sigma"][sub]
+        one = np.full(len(sub), 1 / np.pi)
+        groups = {k: np.flatnonzero(geo.led[sub] == k) for k in geo.leds}
+        last = {}  # the last evaluated x and its (L, F), for the Jacobian
+
+        def resid(L, F):
+            X = np.stack([one, L], axis=1) * F[:, None]
+            coef, *_ = np.linalg.lstsq(X / sig[:, None], y / sig, rcond=None)
+            return (y - X @ coef) / sig
+
+        def fun(x):
+            last["x"], last["LF"] = np.array(x, float), geo.evaluate(sub, **unpack(x))
+            return resid(*last["LF"])
+
+        def jac(x):
+            # forward differences (step 1e-3 max(1, |x|), as least_squares' diff_step=1e-3), each column
+            # re-evaluating the geometry of its own LED's rows only (a per-LED parameter moves nothing
+            # else; rho_d and rho_s are re-solved over all rows, so the column is the exact difference)
+            L0, F0 = last["LF"] if np.array_equal(last.get("x"), x) else geo.evaluate(sub, **unpack(x))
+            r0 = resid(L0, F0)
+            J = np.empty((len(sub), len(x)))
+            for j in range(len(x)):
+                h = 1e-3 * max(1.0, abs(x[j]))
+                h = -h if x[j] + h > hi[j] else h
+                xj = np.array(x, float)
+                xj[j] += h
+                if owners[j] is None:
+                    L, F = geo.evaluate(sub, **unpack(xj))
+                else:
+                    rows = groups[owners[j]]
+                    L, F = L0.copy(), F0.copy()
+                    L[rows], F[rows] = geo.evaluate(sub[rows], **unpack(xj))
+                J[:, j] = (resid(L, F) - r0) / h
+            return J
+
+        return least_squares(fun, x0, jac=jac, bounds=(lo, hi), x_scale=np.maximum(hi - lo, 1e-9) / 20,
                              max_nfev=30 * len(x0)).x
 
     allrows = np.arange(len(c["y"]))
@@ -193,7 +229,7 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
     profile = {"grid": scales.tolist(), "error": (prof / n_all).tolist(), "along": "scale of the fitted parameters"}
     r = CauseResult(name, "brdf", doc, dict(params_of(xa), unit=unit, fold_estimates=[params_of(f) for f in fits]),
                     params_of(spread), ext_res / n_all, base_res / n_all, gains, len(x0), profile=profile,
-                    magnitude=magnitude(xa))
+                    magnitude=magnitude(xa), prediction=predict(xa, allrows, allrows))
     e = np.asarray(profile["error"])
     if (e.max() - e.min()) / max(e.min(), 1e-12) < GAIN_THRESHOLD:
         r.identifiable = False
@@ -220,7 +256,7 @@ def geometry_causes(m: BrdfModel) -> list[CauseResult]:
         geo, "led_position_error", doc, off, np.zeros(3 * nl), np.zeros(3 * nl), np.full(3 * nl, -15.0), np.full(3 * nl, 15.0),
         lambda x: float(np.sqrt(np.mean(np.square(x)))),
         lambda x: {"offset_mm": {str(k): [float(v) for v in x[3 * i:3 * i + 3]] for i, k in enumerate(leds)}},
-        "mm (per LED, holder frame)"))
+        "mm (per LED, holder frame)", [k for k in leds for _ in range(3)]))
 
     # ---- LED emission pattern: cos^n about a tilted axis
     doc = ("LED emission pattern (thesis 4.1.3, fig. 4.2): the radiant intensity left after the diffuser falls as "
@@ -235,7 +271,7 @@ def geometry_causes(m: BrdfModel) -> list[CauseResult]:
         np.concatenate([[400.0], np.full(2 * nl, 0.15)]), lambda x: float(x[0]),
         lambda x: {"n": float(x[0]), "tilt_deg": {str(k): [float(math.degrees(v)) for v in x[1 + 2 * i:3 + 2 * i]]
                                                   for i, k in enumerate(leds)}},
-        "cos exponent n; axis tilt (up, side) degrees"))
+        "cos exponent n; axis tilt (up, side) degrees", [None] + [k for k in leds for _ in range(2)]))
 
     # ---- sample radius error: one global scalar (leave one LED out)
     doc = ("Sample radius error (thesis 4.1.4: paper and sample thickness): the wrapped sample's radius differs from "
@@ -247,9 +283,10 @@ def geometry_causes(m: BrdfModel) -> list[CauseResult]:
     cache = {}
 
     def make_r(dr):
-        key = round(float(dr), 5)
+        # on a 0.002-mm lattice, so that the folds' searches share the re-evaluated geometry (speed)
+        key = round(float(dr) / 0.002) * 0.002
         if key not in cache:
-            cache[key] = geo.evaluate(allrows, dr=float(dr))
+            cache[key] = geo.evaluate(allrows, dr=key)
         L, F = cache[key]
         return [one, L], F
 

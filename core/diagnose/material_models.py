@@ -2,7 +2,7 @@
 
 The thesis measures a BRDF as ``f = (albedo / pi) S / R`` with a Lambertian white
 reference of albedo 0.8 (eq. 4.78) and fits the extended Ward lobe (eq. 4.79-4.80).
-Three named departures from that model, each a parameterised extension:
+The named departures from that model, each a parameterised extension:
 
 * **Non-Lambertian reference** (:func:`renormalise`). Real white paper is neither
   Lambertian nor of albedo 0.8. The reference pixel records ``R ~ f_ref(wi, wo)
@@ -17,6 +17,10 @@ Three named departures from that model, each a parameterised extension:
   JCGT 2014). The lobe is ``D(h) G2(wi, wo) / (4 cos theta_in cos theta_out)`` with
   the anisotropy axes turned exactly as in Ward's eq. 4.80 (``a_n = phi_h + rot``),
   so that ``(alpha_x, alpha_y, lobe_rotation)`` keep their meaning.
+* **Grazing term** (:func:`grazing_factor`). The Lambertian diffuse term times Burley's
+  reciprocal grazing factor (Burley, "Physically-Based Shading at Disney", SIGGRAPH 2012
+  course notes): a diffuse reflection that rises (rough surfaces) or falls (smooth coatings)
+  toward grazing incidence and viewing.
 * **Fresnel** (:func:`schlick_ratio`). The lobe times ``F(theta_d) / F(0)`` with
   Schlick's approximation ``F = F0 + (1 - F0)(1 - cos theta_d)^5``, ``F0 = ((n-1)/(n+1))^2``
   (Schlick, "An inexpensive BRDF model for physically-based rendering", CGF 1994;
@@ -125,6 +129,16 @@ def beckmann_lobe(theta_in, phi_in, theta_out, phi_out, theta_h, phi_h, theta_d,
 LOBES: dict[str, Callable[..., np.ndarray]] = {"ward": ward_lobe, "ggx": ggx_lobe, "beckmann": beckmann_lobe}
 
 
+def grazing_factor(theta_in, theta_out, f90):
+    """Burley's diffuse factor ``[1 + (F_D90 - 1)(1 - cos theta_in)^5] [1 + (F_D90 - 1)(1 - cos theta_out)^5]``
+    (Burley, "Physically-Based Shading at Disney", SIGGRAPH 2012 course notes, sec. 5.3): 1 at
+    normal incidence and viewing, F_D90 at grazing on each side; reciprocal. Burley sets
+    ``F_D90 = 0.5 + 2 roughness cos^2 theta_d``; here F_D90 is the free parameter."""
+    gi = 1.0 + (f90 - 1.0) * (1.0 - np.cos(theta_in)) ** 5
+    go = 1.0 + (f90 - 1.0) * (1.0 - np.cos(theta_out)) ** 5
+    return gi * go
+
+
 def renormalise(rgb, reference_rgb, albedo: float = 0.8):
     """Undo the thesis's Lambertian-reference assumption: ``f = f_meas * f_ref * pi / albedo``
     per channel, with the reference's own BRDF ``f_ref`` at the same angles (eq. 4.78 inverted)."""
@@ -144,13 +158,18 @@ class LobeFit:
     n: float | None = None
     stderr: dict = field(default_factory=dict)
     cost: float = float("nan")
+    f90: float | None = None        # Burley's grazing factor on the diffuse term (:func:`grazing_factor`)
 
     def predict(self, a: dict) -> np.ndarray:
         L = LOBES[self.kind](*(a[k] for k in ANGLES), self.alpha_x, self.alpha_y, self.lobe_rotation, self.n)
-        return self.rho_d / np.pi + self.rho_s * L
+        d = self.rho_d / np.pi
+        if self.f90 is not None:
+            d = d * grazing_factor(a["theta_in"], a["theta_out"], self.f90)
+        return d + self.rho_s * L
 
     def as_dict(self) -> dict:
-        d = {k: getattr(self, k) for k in ("kind", "rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation", "n")}
+        d = {k: getattr(self, k) for k in ("kind", "rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation", "n",
+                                           "f90")}
         d["stderr"] = self.stderr
         return d
 
@@ -249,6 +268,30 @@ def fit_lobe(a: dict, y, W, kind: str = "ggx", start=(0.1, 0.1, 0.0), n=None, fi
     return f
 
 
+def fit_grazing(a: dict, y, W, lobe: LobeFit, bounds: tuple[float, float] = (0.0, 8.0)) -> LobeFit:
+    """The lobe of ``lobe`` kept, the diffuse term times Burley's grazing factor (:func:`grazing_factor`):
+    F_D90 by bounded scalar minimisation of the weighted squared residual (the objective of
+    :func:`fit_lobe`), rho_d and rho_s solved linearly at each step - ``y = rho_d G / pi + rho_s L``
+    is ``y / G = rho_d / pi + rho_s L / G`` with weights ``W G``."""
+    from scipy.optimize import minimize_scalar
+
+    y, W = np.asarray(y, float), np.asarray(W, float)
+    L = LOBES[lobe.kind](*(a[k] for k in ANGLES), lobe.alpha_x, lobe.alpha_y, lobe.lobe_rotation, lobe.n)
+
+    def solve(f90):
+        G = grazing_factor(a["theta_in"], a["theta_out"], f90)
+        rd, rs = _linear(L / G, y / G, W * G)
+        return rd, rs, float(np.sum((W * (rd / np.pi * G + rs * L - y)) ** 2))
+
+    grid = np.linspace(*bounds, 17)
+    k = int(np.argmin([solve(f)[2] for f in grid]))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    f90 = float(minimize_scalar(lambda f: solve(f)[2], bounds=(lo, hi), method="bounded").x)
+    rd, rs, cost = solve(f90)
+    return LobeFit(lobe.kind, rd, rs, lobe.alpha_x, lobe.alpha_y, lobe.lobe_rotation, lobe.n,
+                   cost=cost / max(len(y), 1), f90=f90)
+
+
 def fresnel_profile(a: dict, y, W, folds, grid, kind: str = "ggx", start=(0.1, 0.1, 0.0)) -> dict:
     """Held-out error of the lobe with Schlick's factor at each fixed n of ``grid``:
     fitted on each fold's training rows, scored (weighted mean squared residual) on its
@@ -269,10 +312,16 @@ def fresnel_profile(a: dict, y, W, folds, grid, kind: str = "ggx", start=(0.1, 0
 
 # ------------------------------------------------------------------ diagnose causes
 
+#: training rows (random, seeded) a fold's lobe fit uses, for speed (the fitted parameters' noise grows
+#: as sqrt(training rows / LOBE_FIT_ROWS)); held-out errors use every test row
+LOBE_FIT_ROWS = 8_000
+
+
 def _refit_cause(m, a, kind, fac, start):
-    """Held-out scores of a lobe of ``kind`` refitted per fold (shape and rho_d, rho_s) to the data
-    divided by ``fac``, predicting ``fac`` times the fit, against the base model (Ward lobe of the
-    fit, rho_d and rho_s re-solved per fold). Returns (error, base error, fold gains, fit on all rows)."""
+    """Held-out scores of a lobe of ``kind`` refitted per fold (shape and rho_d, rho_s; on at most
+    LOBE_FIT_ROWS of the fold's training rows) to the data divided by ``fac``, predicting ``fac``
+    times the fit, against the base model (Ward lobe of the fit, rho_d and rho_s re-solved per
+    fold on all its training rows). Returns (error, base error, fold gains, fit on all rows)."""
     from glossrig.core.diagnose.catalogue import chi2
 
     c = m.cols
@@ -281,9 +330,13 @@ def _refit_cause(m, a, kind, fac, start):
     e0s = e1s = 0.0
     gains = []
     n_tot = 0
+    rng = np.random.default_rng(0)
     for train, test in m.folds():
-        sub = {k: v[train] for k, v in a.items()}
-        f = fit_lobe(sub, y[train] / fac[train], fac[train] / sig[train], kind, start, uncertainty=False)
+        rows = np.flatnonzero(train)
+        if rows.size > LOBE_FIT_ROWS:
+            rows = np.sort(rng.choice(rows, LOBE_FIT_ROWS, replace=False))
+        sub = {k: v[rows] for k, v in a.items()}
+        f = fit_lobe(sub, y[rows] / fac[rows], fac[rows] / sig[rows], kind, start, uncertainty=False)
         p1 = f.predict(a) * fac
         _, p0, _ = m.solve_linear([one, c["L"]], train)
         e0, e1 = chi2((y - p0)[test], sig[test]), chi2((y - p1)[test], sig[test])
@@ -322,7 +375,22 @@ def material_causes(m) -> list:
     for kind, name, doc, unit in lobe_docs:
         e1, e0, gains, f = _refit_cause(m, a, kind, np.ones_like(c["y"]), start)
         out.append(CauseResult(name, "brdf", doc, dict({k: getattr(f, k) for k in names}, unit=unit),
-                               f.stderr, e1, e0, gains, 0, magnitude=f.alpha_x))
+                               f.stderr, e1, e0, gains, 0, magnitude=f.alpha_x, prediction=f.predict(a)))
+
+    # ---- a diffuse term with a grazing factor (Burley 2012): one parameter, F_D90
+    from glossrig.core.diagnose.catalogue import _scalar_cause
+
+    doc = ("Grazing term: the diffuse part rho_d / pi times Burley's factor [1 + (F_D90 - 1)(1 - cos theta_in)^5]"
+           "[1 + (F_D90 - 1)(1 - cos theta_out)^5] (Burley, \"Physically-Based Shading at Disney\", 2012, sec. 5.3), "
+           "the Ward lobe kept. A Lambertian diffuse term (eq. 4.79) is constant; measured diffuse reflection of "
+           "rough surfaces rises toward grazing incidence and viewing (retro-reflection of rough facets, "
+           "Oren & Nayar 1994), that of smooth dielectric coatings falls (the Fresnel loss of light entering and "
+           "leaving the surface). F_D90 > 1 is a rise, < 1 a fall; Burley ties it to the roughness, "
+           "F_D90 = 0.5 + 2 r cos^2 theta_d, here it is fitted. One parameter, reciprocal.")
+    one = np.full_like(c["L"], 1 / np.pi)
+    out.append(_scalar_cause(m, "grazing_lobe", doc,
+                             lambda f90: ([one * grazing_factor(c["theta_in"], c["theta_out"], f90), c["L"]], None),
+                             (0.0, 8.0), "F_D90", "diffuse factor at grazing incidence and viewing"))
 
     # ---- the reference's own BRDF instead of Lambertian albedo 0.8 (no extra parameter)
     ref = getattr(m.data, "reference_brdf", None)
@@ -344,5 +412,5 @@ def material_causes(m) -> list:
                       spread_p5_p95=[float(np.percentile(corr, 5)), float(np.percentile(corr, 95))],
                       unit="corrected / thesis-normalised value; Ward parameters of the corrected data")
         out.append(CauseResult("reference_brdf", "brdf", doc, params, f.stderr, e1, e0, gains, 0,
-                               magnitude=float(np.median(corr))))
+                               magnitude=float(np.median(corr)), prediction=f.predict(a) * fac))
     return out

@@ -128,6 +128,7 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
            "calibration": calibration or {},
            "unexplained": [{"variable": e["variable"], "effect": e["effect"], "significant": e["significant"],
                             "space": e.get("space"), "p": e.get("p"), "effect_unit": e.get("effect_unit"),
+                            "after": e.get("after", "flexible_material" if e.get("space") == "brdf" else None),
                             "profile": e.get("profile")} for e in unexplained],
            "penalty": {"per_space": {k: {"gain_threshold": t, "per_extra_parameter": p}
                                      for k, (t, p) in THRESHOLDS.items()},
@@ -149,7 +150,8 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
                  "no significant discrepancy between the measurement and the model.")
     elif v == "unexplained":
         L.append("Structured residual remains that no catalogue cause explains: "
-                 + ", ".join(f"{e['variable']} (effect {e['effect']:.3g} {e.get('effect_unit', '')})"
+                 + ", ".join(f"{e['variable']} (effect {e['effect']:.3g} {e.get('effect_unit', '')}"
+                             + (f", after {e['after']}" if e.get("after") else "") + ")"
                              for e in unexplained if e["significant"]) + ".")
     else:
         w = next(c for c in causes if c.name == v)
@@ -175,10 +177,11 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
         L.append(f"| {c.name} ({c.kind}) | {c.space} | {c.gain:.2%} | {c.threshold:.2%} | {c.eligible} | "
                  f"`{json.dumps(p)}` | {c.note} |")
     if unexplained:
-        L += ["", "## Residual structure no cause explains", "", "| variable | space | effect | p | significant |",
-              "|---|---|---|---|---|"]
-        L += [f"| {e['variable']} | {e.get('space')} | {e['effect']:.3g} | {e.get('p', float('nan')):.2g} | "
-              f"{e['significant']} |" for e in unexplained]
+        L += ["", "## Residual structure no cause explains", "",
+              "| variable | space | residual after | effect | p | significant |", "|---|---|---|---|---|---|"]
+        L += [f"| {e['variable']} | {e.get('space')} | "
+              f"{e.get('after', 'flexible_material' if e.get('space') == 'brdf' else 'linear sensor')} | "
+              f"{e['effect']:.3g} | {e.get('p', float('nan')):.2g} | {e['significant']} |" for e in unexplained]
     L += ["", "## Causes and their physics", ""]
     for c in causes:
         L += [f"* **{c.name}**: {c.doc}"]

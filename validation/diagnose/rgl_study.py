@@ -1,20 +1,24 @@
-"""Real measured BRDFs on the twin: what the thesis's model gets wrong (issue 7, real data).
+"""Real measured BRDFs and anisotropic Mitsuba materials on the twin: what the thesis's model
+gets wrong, and whether diagnose names it without ground truth (issues 7 and 14, item 7a).
 
-    nice -n 5 python -m validation.diagnose.rgl_study --work /tmp/rgl_study \
-        [--camera camera.json --lamps lamps.json] [--rotations 0,90]
+    nice -n 10 python -m validation.diagnose.rgl_study --work /tmp/rgl_study \
+        [--camera camera.json --lamps lamps.json] [--rotations 0,90] [--aniso-rotations 0,90]
 
-The four RGL materials of ../shared/data/rgl (Dupuy & Jakob, "An Adaptive
+The eight RGL materials of ../shared/data/rgl (Dupuy & Jakob, "An Adaptive
 Parameterization for Efficient Material Acquisition and Rendering", SIGGRAPH Asia
-2018) are measured on the twin as the real rig would measure them: middle-row LEDs,
-scale 0.25, the real white paper (``measured:paper_white_rgb.bsdf``) as the diffuse
-reference, thesis normalisation (Lambertian reference of albedo 0.8). Each capture
-goes through ``glossrig extract``, ``glossrig fit`` and ``glossrig diagnose``
-(with ``--reference-brdf`` so that the reference cause can be tested). Then every
-model of :mod:`glossrig.core.diagnose.material_models` is fitted to the extracted
-samples and scored against the measured BRDF itself (the ground truth,
-:mod:`glossrig.twin.measured_brdf`) at the rig's angles and on a held-out grid of
-directions the rig never saw (theta_d > 30 deg). Writes WORK/study.json, the plots
-and validation/diagnose/rgl_study.md.
+2018) and two anisotropic stock Mitsuba BSDFs (scenes/materials/aniso_roughconductor_ggx.xml
+and aniso_roughconductor_beckmann.xml) are measured on the twin as the real rig would
+measure them: middle-row LEDs, scale 0.25, the real white paper
+(``measured:paper_white_rgb.bsdf``) as the diffuse reference, thesis normalisation
+(Lambertian reference of albedo 0.8). Each capture goes through ``glossrig extract``,
+``glossrig fit`` and ``glossrig diagnose`` (with ``--reference-brdf`` so that the reference
+cause can be tested). Then every model of :mod:`glossrig.core.diagnose.material_models`
+and every other extension diagnose can name is fitted to the extracted samples and scored
+against the true BRDF (:mod:`glossrig.twin.measured_brdf`, :mod:`glossrig.twin.mitsuba_material`)
+at the rig's angles, and the lobe models also on a held-out grid of directions the rig never
+saw (theta_d > 30 deg); the extension that gains most against the truth at the rig's angles
+is set beside diagnose's verdict (issue 14). Writes WORK/study.json, the plots and
+validation/diagnose/rgl_study.md.
 
 Resumable: every stage checks for its output and skips what exists. The camera and
 lamp calibrations are made once (checkerboard and transparency-sheet captures) unless
@@ -34,8 +38,44 @@ from validation.paths import ROOT, rgl_dir
 from validation.provenance import code_version, describe, record
 
 RGL = rgl_dir()
-MATERIALS = ("satin_rosaline_rgb", "vch_golden_yellow_rgb", "cc_ibiza_sunset_rgb", "paper_white_rgb")
+#: the eight real materials of ../shared/data/rgl and two anisotropic stock Mitsuba BSDFs (issue 14, item 7a)
+REAL = ("satin_rosaline_rgb", "vch_golden_yellow_rgb", "cc_ibiza_sunset_rgb", "paper_white_rgb",
+        "acrylic_felt_green_rgb", "chm_mint_rgb", "ilm_l3_37_matte_rgb", "ilm_l3_37_metallic_rgb")
+MITSUBA = ("aniso_roughconductor_ggx", "aniso_roughconductor_beckmann")
+MATERIALS = REAL + MITSUBA
 REFERENCE = RGL / "paper_white_rgb.bsdf"
+#: an extension must lower the thesis model's error against the truth by more than this to be "the" answer
+TRUTH_GAIN_MIN = 0.10
+
+
+def material_spec(m: str) -> str:
+    """The ``--material`` of a study material: an RGL measurement or a scenes/materials XML."""
+    if m in MITSUBA:
+        return f"mitsuba:{ROOT / 'scenes' / 'materials' / (m + '.xml')}"
+    return f"measured:{RGL / (m + '.bsdf')}"
+
+
+def truth_of(m: str):
+    """The material's true BRDF (``table(t)``, ``luminance(...)``): the RGL measurement through
+    Mitsuba's ``measured`` plugin, or the stock BSDF itself (glossrig.twin.mitsuba_material)."""
+    from glossrig.core.models.materials import parse_material
+    from glossrig.twin.measured_brdf import MeasuredBRDF
+    from glossrig.twin.mitsuba_material import MitsubaBRDF
+
+    spec = material_spec(m)
+    return MitsubaBRDF(parse_material(spec)) if spec.startswith("mitsuba:") else MeasuredBRDF(RGL / f"{m}.bsdf")
+
+
+def rotations_of(m: str, a) -> str:
+    """Sample rotations of a material's capture: ``--aniso-rotations`` for the anisotropic Mitsuba
+    materials, ``--rotations`` for the others."""
+    return a.aniso_rotations if m in MITSUBA else a.rotations
+
+
+def all_rotations(a) -> str:
+    """The reference's rotations: every rotation of any sample capture (the reference must hold them)."""
+    rots = {float(x) for r in (a.rotations, a.aniso_rotations) for x in r.split(",")}
+    return ",".join(f"{x:g}" for x in sorted(rots))
 
 
 def calibrations(work: Path, a) -> tuple[Path, Path]:
@@ -43,18 +83,19 @@ def calibrations(work: Path, a) -> tuple[Path, Path]:
     for given, name in ((a.camera, "camera.json"), (a.lamps, "lamps.json")):
         if given and not (work / name).exists():
             shutil.copy(given, work / name)
-    return calibrate(work, a.scale, 1)
+    return calibrate(work, a.scale, 1, leds=a.leds)
 
 
 def captures(work: Path, a) -> dict:
     """Reference and sample captures, then extract / fit / diagnose per material."""
     cam, lamps = calibrations(work, a)
-    ref = capture(work / "reference", f"measured:{REFERENCE}", a.scale, 3, a.rotations, 1)
+    ref = capture(work / "reference", f"measured:{REFERENCE}", a.scale, 3, all_rotations(a), 1, leds=a.leds)
     out = {}
     for k, m in enumerate(a.materials.split(",")):
         prov = work / "provenance.json"
         made = not capture_complete(work / m)
-        cap = capture(work / m, f"measured:{RGL / (m + '.bsdf')}", a.scale, 10 + k, a.rotations, 1)
+        cap = capture(work / m, material_spec(m), a.scale, 10 + MATERIALS.index(m) if m in MATERIALS else 10 + k,
+                      rotations_of(m, a), 1, leds=a.leds)
         if made:
             record(prov, f"{m}/capture")
         sp, fj, dg = work / f"{m}.parquet", work / f"{m}.fit.json", work / f"{m}.diagnose"
@@ -127,6 +168,7 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
     from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD
     from glossrig.core.diagnose.material_models import (LUMA, LobeFit, angle_arrays, fit_lobe, fit_weights,
                                                         fresnel_profile, renormalise)
+    from glossrig.core.diagnose.channels import fill_missing_channels
     from glossrig.core.fitting.fit import fit_samples
     from glossrig.core.samples import read_samples
     from glossrig.twin.measured_brdf import MeasuredBRDF
@@ -134,12 +176,17 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
     print(f"[{m}] analysis", flush=True)
     t = read_samples(run["samples"])
     A = angle_arrays(t)
-    truth, paper = MeasuredBRDF(RGL / f"{m}.bsdf"), MeasuredBRDF(REFERENCE)
+    truth, paper = truth_of(m), MeasuredBRDF(REFERENCE)
     y_true = truth.table(t) @ LUMA
     rgb = t[["r", "g", "b"]].to_numpy(float)
     corr = t.copy()
     corr[["r", "g", "b"]] = renormalise(rgb, paper.table(t), ALBEDO)
-    y0, y1 = rgb @ LUMA, corr[["r", "g", "b"]].to_numpy(float) @ LUMA
+    wd = load_fit(run["fit"])
+    # a row missing a colour channel keeps the others; the missing one is predicted as diagnose does
+    # (glossrig.core.diagnose.channels: that channel's base model on the thesis fit's lobe)
+    unit = LobeFit("ward", 0.0, 1.0, wd.alpha_x, wd.alpha_y, wd.lobe_rotation).predict(A)
+    y0, _, fill = fill_missing_channels(t.assign(f=rgb @ LUMA), unit)
+    y1, _, _ = fill_missing_channels(corr.assign(f=corr[["r", "g", "b"]].to_numpy(float) @ LUMA), unit)
     H = heldout_grid()
     y_held = truth.luminance(H["theta_in"], H["phi_in"], H["theta_out"], H["phi_out"])
 
@@ -147,16 +194,15 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
         return {"params": f.as_dict(), "rig": errors(f.predict(A), y_true, A), "heldout": errors(f.predict(H), y_held, H)}
 
     out = {"material": m, "n_samples": len(t), "theta_d_max_deg": float(np.degrees(A["theta_d"].max())),
-           "n_heldout": int(len(y_held)),
+           "n_heldout": int(len(y_held)), "missing_channels": fill,
            "data": {"thesis_normalised": errors(y0, y_true, A), "reference_renormalised": errors(y1, y_true, A)}}
-    wd = load_fit(run["fit"])
     out["thesis"] = score(LobeFit.from_ward(wd))
     wf = fit_samples(corr, channels=["luminance"]).fits["luminance"].to_json()
     w_ref = LobeFit("ward", *(wf[k] for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")),
                     stderr={k: wf.get(k + "_stderr") for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")})
     out["reference"] = score(w_ref)
     rng = np.random.default_rng(0)
-    rows = np.flatnonzero(np.isfinite(y0) & np.isfinite(y1))      # luminance needs every channel
+    rows = np.flatnonzero(np.isfinite(y0) & np.isfinite(y1))
     idx = np.sort(rng.choice(rows, min(a.fit_rows, rows.size), replace=False))
     As = {k: v[idx] for k, v in A.items()}
     W = fit_weights(t)[idx]
@@ -179,7 +225,58 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
                       "folds": "leave two LEDs out (interleaved pairs)"}
     k = int(np.argmin(e))
     out["reference_ggx_fresnel"] = score(prof["fits"][k])
+    out.update(extension_fits(A, As, y0[idx], W, idx, LobeFit.from_ward(wd), score,
+                              lambda pred: errors(pred, y_true, A)))
+    out["extensions"] = truth_ranking(out)
     return out
+
+
+#: diagnose's material and reference causes -> the study's fit of the same extension to the capture's data
+EXTENSIONS = {"ggx_lobe": "ggx_only", "beckmann_lobe": "beckmann_only", "grazing_lobe": "grazing",
+              "fresnel": "ward_fresnel", "flexible_material": "flexible", "reference_brdf": "reference"}
+
+
+def extension_fits(A: dict, As: dict, y, W, idx, ward, score, rig_errors) -> dict:
+    """Each extension diagnose can name, fitted to the thesis-normalised luminance of the rows ``idx``
+    (angles ``As``, weights ``W``; the objective of glossrig fit) and scored against the truth by
+    ``score`` (a lobe fit) or ``rig_errors`` (a prediction at every row): the Beckmann (Cook-Torrance)
+    lobe, the grazing term on the thesis fit's Ward lobe, Ward with Schlick's Fresnel factor, and the
+    flexible material model (:mod:`glossrig.core.diagnose.flexible`: the Ward lobe plus hat functions
+    in theta_h, knots from the fitted rows; at the rig's angles only)."""
+    import types
+
+    import numpy as np
+
+    from glossrig.core.diagnose.flexible import fit_flexible
+    from glossrig.core.diagnose.material_models import LobeFit, fit_grazing, fit_lobe
+
+    start = (ward.alpha_x, ward.alpha_y, ward.lobe_rotation)
+    out = {"beckmann_only": score(fit_lobe(As, y, W, "beckmann", start)),
+           "grazing": score(fit_grazing(As, y, W, ward)),
+           "ward_fresnel": score(fit_lobe(As, y, W, "ward", start, fit_n=True))}
+    unit = LobeFit("ward", 0.0, 1.0, ward.alpha_x, ward.alpha_y, ward.lobe_rotation)
+    n = len(A["theta_h"])
+    train = np.zeros(n, bool)
+    train[idx] = True
+    yy, sig = np.zeros(n), np.ones(n)
+    yy[idx], sig[idx] = y, 1.0 / np.maximum(W, 1e-12)
+    cols = {"theta_h": A["theta_h"], "theta_d": A["theta_d"], "L": unit.predict(A), "y": yy, "sigma": sig}
+    coef, pred = fit_flexible(types.SimpleNamespace(cols=cols), train)
+    out["flexible"] = {"params": {"kind": "ward + hat functions in theta_h", "rho_d": float(coef[0]),
+                                  "rho_s": float(coef[1]), "alpha_x": ward.alpha_x, "alpha_y": ward.alpha_y,
+                                  "lobe_rotation": ward.lobe_rotation, "stderr": {}},
+                       "rig": rig_errors(pred), "heldout": None}
+    return out
+
+
+def truth_ranking(r: dict) -> dict:
+    """Each extension's gain against the truth at the rig's angles (median |relative error| of the
+    thesis model -> of the extension) and the best one: the answer diagnose should give, or
+    "none" when no extension gains more than TRUTH_GAIN_MIN."""
+    e0 = r["thesis"]["rig"]["median_abs_rel"]
+    gains = {name: (e0 - r[key]["rig"]["median_abs_rel"]) / e0 for name, key in EXTENSIONS.items() if key in r}
+    best = max(gains, key=lambda k: gains[k])
+    return {"thesis_rig_error": e0, "gain": gains, "best": best if gains[best] > TRUTH_GAIN_MIN else "none"}
 
 
 def diagnose_summary(run: dict) -> dict | None:
@@ -188,8 +285,50 @@ def diagnose_summary(run: dict) -> dict | None:
         return None
     rep = read_report(dg)
     return {"verdict": rep["verdict"], "base_error": rep["base_error"],
-            "causes": [{k: c.get(k) for k in ("name", "gain", "significant", "identifiable", "params", "stderr",
-                                              "note")} for c in rep["causes"]]}
+            "causes": [{k: c.get(k) for k in ("name", "kind", "gain", "significant", "eligible", "identifiable",
+                                              "params", "stderr", "note")} for c in rep["causes"]],
+            "unexplained": [u for u in rep.get("unexplained", []) if u.get("significant")],
+            "calibration": {k: rep.get("calibration", {}).get(k) for k in ("heldout_error", "heldout_error_noise_only")},
+            "time_s": rep.get("meta", {}).get("time_s"), "missing_channels": rep.get("meta", {}).get("missing_channels")}
+
+
+def verdict_table(results: dict) -> list[str]:
+    """Issue 14's check: per material, the extension that gains most against the truth at the rig's
+    angles (or none: no gain above TRUTH_GAIN_MIN) beside diagnose's verdict made without ground truth."""
+    L = ["## Verdict against the truth (issue 14)", "",
+         f"For each material: the thesis model's error against the truth at the rig's angles, each extension "
+         f"diagnose can name fitted to the capture's own data and scored against the truth at the same angles, "
+         f"and the best of them - the answer diagnose should give, or `none` when no extension lowers the error "
+         f"by more than {TRUTH_GAIN_MIN:.0%} - beside diagnose's verdict (made without the truth). Extensions: "
+         + ", ".join(f"`{k}`" for k in EXTENSIONS) + ".", "",
+         "| material | thesis model error (rig) | gain of each extension vs truth | best vs truth | diagnose verdict "
+         "| match | instrument cause named | base held-out error |", "|---|---|---|---|---|---|---|---|"]
+    n_ok = n_match = n_instr = 0
+    for m, r in results.items():
+        if m.startswith("_"):
+            continue
+        if "failed" in r or "extensions" not in r:
+            L.append(f"| {m} | {r.get('failed', 'not analysed')} | | | | | | |")
+            continue
+        ex, d = r["extensions"], r.get("diagnose")
+        gains = ", ".join(f"{k} {100 * g:+.1f} %" for k, g in sorted(ex["gain"].items(), key=lambda kv: -kv[1]))
+        if d is None:
+            L.append(f"| {m} | {_pct(ex['thesis_rig_error'])} | {gains} | `{ex['best']}` | not run | | | |")
+            continue
+        kinds = {c["name"]: c.get("kind") for c in d["causes"]}
+        instrument = kinds.get(d["verdict"]) == "instrument"
+        match = d["verdict"] == ex["best"]
+        n_ok += 1
+        n_match += match
+        n_instr += instrument
+        cal = (d.get("calibration") or {}).get("heldout_error")
+        L.append(f"| {m} | {_pct(ex['thesis_rig_error'])} | {gains} | `{ex['best']}` | `{d['verdict']}` | "
+                 f"{'yes' if match else 'no'} | {'yes' if instrument else 'no'} | "
+                 f"{'n/a' if cal is None else f'{cal:.3g}'} |")
+    L += ["", f"Diagnose's verdict matches the best extension against the truth on {n_match} of {n_ok} captures; "
+          f"an instrument cause is named on {n_instr} of {n_ok} (none of these captures has an instrument effect).",
+          ""]
+    return L
 
 
 STAGES = (("thesis", "thesis: Ward fit of the Lambertian-0.8-normalised data"),
@@ -226,13 +365,12 @@ def plots(results: dict, work: Path, outdir: Path) -> None:
     import numpy as np
 
     from glossrig.core.models.angles import brdf_angles, local_direction
-    from glossrig.twin.measured_brdf import MeasuredBRDF
 
     outdir.mkdir(parents=True, exist_ok=True)
     for m, r in results.items():
         if "failed" in r or m.startswith("_"):
             continue
-        truth = MeasuredBRDF(RGL / f"{m}.bsdf")
+        truth = truth_of(m)
         fig, axs = plt.subplots(1, 3, figsize=(13, 3.6))
         for ax, ti in zip(axs[:2], (20.0, 60.0)):
             to = np.radians(np.linspace(-85, 85, 341))
@@ -320,16 +458,19 @@ def reading(results: dict) -> list[str]:
 
 
 def markdown(results: dict, a) -> str:
-    L = ["# Real measured BRDFs on the twin: what the thesis's model gets wrong (issue 7)", "",
-         "Command (resumable; about 40 min on 2 cores, 78 min for the committed run with four other studies on the same cores):", "",
-         "    nice -n 5 python -m validation.diagnose.rgl_study --work /tmp/rgl_study \\",
-         "        --camera CAMERA.json --lamps LAMPS.json      # optional: reuse calibrations of this rig and scale", "",
+    L = ["# Real measured BRDFs and anisotropic Mitsuba materials on the twin: what the thesis's model gets "
+         "wrong, and what diagnose names (issues 7 and 14)", "",
+         "Command of this report (resumable; the defaults are scale 0.25 and rotations 0,90 for every material):", "",
+         f"    nice -n 10 python -m validation.diagnose.rgl_study --work WORK --scale {a.scale:g} "
+         f"--rotations {a.rotations} --aniso-rotations {a.aniso_rotations} --leds {a.leds} --fit-rows {a.fit_rows}",
+         "        [--camera CAMERA.json --lamps LAMPS.json]      # optional: reuse calibrations of this rig and scale", "",
          f"Report written at commit {describe(code_version())}. The study is resumable: stages found in WORK are "
          "reused, so they may have run at other commits; each stage run records its commit in "
          "WORK/provenance.json, listed per material below.", "",
          f"Materials: the RGL measurements of ../shared/data/rgl (Dupuy & Jakob, \"An Adaptive Parameterization "
          f"for Efficient Material Acquisition and Rendering\", ACM TOG 37(6), SIGGRAPH Asia 2018), rendered by "
-         f"Mitsuba's `measured` plugin. Captures: scale {a.scale}, the 8 middle-row LEDs, rotations {a.rotations}, "
+         f"Mitsuba's `measured` plugin, and two anisotropic stock Mitsuba BSDFs ({', '.join(MITSUBA)}; "
+         f"scenes/materials, truth: the BSDF itself through `glossrig.twin.mitsuba_material`). Captures: scale {a.scale}, LEDs `{a.leds}`, rotations {a.rotations} (anisotropic Mitsuba materials: {a.aniso_rotations}), "
          f"one repeat, thesis LED fluctuations and sensor noise; diffuse reference: the real white paper "
          f"(`measured:paper_white_rgb.bsdf`), extraction with the thesis normalisation (Lambertian, albedo "
          f"{ALBEDO}); `glossrig fit` (luminance) and `glossrig diagnose --reference-brdf`. Ground truth: the "
@@ -357,6 +498,7 @@ def markdown(results: dict, a) -> str:
           "The rig's theta_d stays below ~27 deg, where F changes by < 1 % for n = 1.5.", "",
           "The study below measures each extension against the measured BRDF; `glossrig diagnose` (which has "
           "no ground truth) tests the same causes on the capture alone (held-out LEDs), see each material.", ""]
+    L += verdict_table(results)
     L += ["## Summary (median |relative error|, rig angles / held-out angles)", "",
           "| material | rig theta_d max | data error, thesis normalisation | data error, reference renormalised | "
           "thesis model: rig / held-out | (a) reference | (b) GGX alone | (a)+(b) | Fresnel n |",
@@ -431,7 +573,9 @@ def main(argv=None):
     ap.add_argument("--camera", default=None, help="reuse this camera calibration (same rig and scale)")
     ap.add_argument("--lamps", default=None, help="reuse this lamp calibration (same rig and scale)")
     ap.add_argument("--scale", type=float, default=0.25)
-    ap.add_argument("--rotations", default="0,90")
+    ap.add_argument("--rotations", default="0,90", help="sample rotations of the real (isotropic) materials")
+    ap.add_argument("--aniso-rotations", default="0,90", help="sample rotations of the anisotropic Mitsuba materials")
+    ap.add_argument("--leds", default="middle", help="LEDs of every capture (a row name or ids)")
     ap.add_argument("--materials", default=",".join(MATERIALS))
     ap.add_argument("--no-diagnose", dest="diagnose", action="store_false")
     ap.add_argument("--captures-only", action="store_true")
