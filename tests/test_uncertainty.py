@@ -176,3 +176,17 @@ def test_cli_prints_the_budget_table(geometry, tmp_path, capsys):
     assert fit.footprint["model"] == "footprint-averaged"
     assert fit.uncertainty["alpha_y"]["components"]["calibration"] == 2e-4
     assert budget_table({"luminance": fit}) in text
+
+
+def test_budget_of_an_undetermined_parameter_does_not_overflow():
+    """A parameter the data cannot determine (a red lobe rotation of a nearly isotropic
+    lobe: u ~ 1e80 rad) gave OverflowError in Welch-Satterthwaite's u ** 4 and stopped
+    `glossrig fit` with a traceback; its budget is now the whole half-circle."""
+    from glossrig.core.fitting.uncertainty import parameter_budget
+
+    b = parameter_budget("lobe_rotation", 1.0, {"noise": (1e80, 1e4), "model": (1e-3, 5.0)})
+    assert b["interval95"] == [0.0, math.pi]
+    assert b["dof"] is not None and b["dof"] > 1e3        # the dominant component's dof
+    b = parameter_budget("alpha_x", 0.1, {"noise": (0.003, 100.0), "model": (0.004, 4.0)})
+    # Welch-Satterthwaite by hand: u_c^4 / sum(u_i^4 / nu_i)
+    assert b["dof"] == pytest.approx(0.005 ** 4 / (0.003 ** 4 / 100 + 0.004 ** 4 / 4), rel=1e-9)

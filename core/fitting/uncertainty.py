@@ -158,8 +158,10 @@ def parameter_budget(name: str, value: float, comps: dict[str, tuple[float, floa
     u2 = sum(u * u for u, _ in comps.values())
     uc = math.sqrt(u2) if math.isfinite(u2) else math.inf
     if math.isfinite(uc) and uc > 0:
-        den = sum(u ** 4 / dof for u, dof in comps.values() if math.isfinite(dof) and u > 0)
-        dof = uc ** 4 / den if den > 0 else math.inf
+        # Welch-Satterthwaite (GUM G.4.1) in ratios (u_i / u_c <= 1): u ** 4 itself overflows
+        # for a parameter the data cannot determine (u ~ 1e80)
+        den = sum((u / uc) ** 4 / dof for u, dof in comps.values() if math.isfinite(dof) and u > 0)
+        dof = 1.0 / den if den > 0 else math.inf
     else:
         dof = math.inf
     k = _t97_5(dof)
