@@ -213,7 +213,8 @@ def test_follow_refuses_an_incomplete_reference_and_bad_timeouts(reference, tmp_
 
 def test_a_unit_is_ready_when_its_calibration_image_and_every_planned_exposure_are_recorded(tmp_path):
     from glossrig.core.capture import ImageEntry, Manifest
-    from glossrig.core.extraction.follow import planned_units, unit_name, unit_ready
+    from glossrig.core.extraction.extract import unit_name
+    from glossrig.core.extraction.follow import planned_units, unit_ready
 
     plan = {"rotations": [0.0, 45.0], "leds": [6, 9], "repeats": 2, "exposures_s": [0.05, 0.2],
             "led_exposures_s": {"9": [0.5]}}

@@ -297,7 +297,14 @@ class _Source:
                 for led in sorted({im.leds[0] for im in self.man.select("sequence", rotation=rot)})]
 
     def unit_name(self, rot: float, led: int) -> str:
-        return f"{self.prefix}rot{rot:g}-led{led}"
+        return unit_name(self.prefix, rot, led)
+
+
+def unit_name(prefix: str, rotation: float, led: int) -> str:
+    """A (rotation, LED) unit's name in a :class:`glossrig.core.checkpoint.WorkStore`
+    (``sample-rot0-led6``): the one spelling, shared by extract's resume and
+    :mod:`glossrig.core.extraction.follow`, so units measured by either are reused by both."""
+    return f"{prefix}rot{rotation:g}-led{led}"
 
 
 def _open_source(folder, name: str, what: str, prefix: str) -> _Source:

@@ -50,6 +50,7 @@ from glossrig.core.capture import MANIFEST, Manifest, load_manifest
 from glossrig.core.checkpoint import WorkStore, work_folder_for
 from glossrig.core.errors import InputError
 from glossrig.core.extraction import extract as ex
+from glossrig.core.extraction.extract import unit_name
 from glossrig.core.rig import load_rig
 
 _log = logging.getLogger(__name__)
@@ -67,12 +68,6 @@ def follow_folder_for(output) -> Path:
     """The work folder of a followed extraction writing ``output``: ``OUTPUT.follow``."""
     p = Path(output)
     return p.with_name(p.name + FOLLOW_SUFFIX)
-
-
-def unit_name(prefix: str, rotation: float, led: int) -> str:
-    """A unit's name in a work store: the one :func:`glossrig.core.extraction.extract.measure_capture`
-    gives it (``sample-rot0-led6``), so a unit measured while following is reused there."""
-    return f"{prefix}rot{rotation:g}-led{led}"
 
 
 def planned_units(man: Manifest) -> dict[Unit, set[tuple[int, float]]] | None:
