@@ -190,7 +190,8 @@ def test_poses_recover_the_twin_geometry(sample_capture, geometry):
     alone scatters the holder tilt by ~0.05 deg at this scale (exact image, 6 noise draws:
     median 0.045, max 0.061 deg). Over whole captures (scene seeds 2-5, each drawing the
     LED fluctuations and the sensor noise; the NumPy sensor of 559ff71 and the Dr.Jit sensor
-    of today, 8 captures) the tilts scatter more: holder 0.007-0.178 deg (RMS 0.094), cylinder
+    of today, 8 captures; `python -m validation.pose_scatter --work W --seeds 2,3,4,5`
+    prints today's rows) the tilts scatter more: holder 0.007-0.178 deg (RMS 0.094), cylinder
     in holder 0.012-0.170 deg (RMS 0.095), cylinder 0.007-0.025 deg (RMS 0.014). A one-seed
     bound of 0.1 deg failed 2 of those 8; the tilt bounds are 3 x that RMS (a half-normal
     tilt exceeds 3 sigma with probability 0.3 %). Translations: the issue's bounds."""
