@@ -72,6 +72,17 @@ def test_kernel_draws_follow_the_poisson_law(lam):
     assert chi2_pvalue(x, lam) > P_MIN
 
 
+@pytest.mark.parametrize("lam", [0.05, 1.5, 6.5])
+def test_unlit_pixels_draw_the_poisson_law_of_the_dark_signal(lam):
+    """A pixel that sees no light (expected photo-electrons 0) draws Poisson(dark electrons),
+    its F(0) = exp(-dark) computed once per frame instead of per pixel."""
+    e = np.zeros(((1 << 21) // 1024, 1024), np.float32)
+    x = sensor_drjit.noise_dn(e, seed=int(lam * 1000) + 7, dark_e=lam, full_well_e=1e9, read_e=0.0, inv_k=1.0,
+                              black_2x2=np.zeros((2, 2)), white=None).ravel()
+    assert np.all(x == np.round(x)) and x.min() >= 0
+    assert chi2_pvalue(x, lam) > P_MIN
+
+
 def test_the_chi_square_test_rejects_a_normal_approximation():
     """The test above has the power to see a normal approximation (skewness 1/sqrt(lambda))."""
     lam = 37.2
@@ -213,3 +224,35 @@ def test_without_llvm_the_reference_path_is_used(sensor, monkeypatch):
     with pytest.warns(RuntimeWarning, match="reference path"):
         a = sensor.expose(rad, 0.1, 320, 11.0, frame_rng(1, 0))
     assert np.array_equal(a, sensor.expose_reference(rad, 0.1, 320, 11.0, frame_rng(1, 0)))
+
+
+def test_pixel_pairs_sharing_a_box_muller_transform_are_uncorrelated(sensor):
+    """Pixels 2 j and 2 j + 1 take the cosine and the sine of one Box-Muller transform: as
+    independent normals their raw values are uncorrelated (|r| < Z / sqrt(n), the standard
+    error of a correlation coefficient of n independent pairs), and so are the vertical
+    neighbours, from other transforms."""
+    iso, t = 320, 0.01
+    rad = _flat_electrons(sensor, 0.0, t, size=1024)
+    m = sensor.expose(rad, t, iso, 11.0, frame_rng(31, 0)).astype(np.float64)
+    for a, b in ((m[:, 0::2], m[:, 1::2]), (m[0::2], m[1::2])):
+        x, y = a.ravel() - a.mean(), b.ravel() - b.mean()
+        r = float((x * y).sum() / math.sqrt((x * x).sum() * (y * y).sum()))
+        assert abs(r) < Z / math.sqrt(x.size), r
+
+
+def test_the_llvm_search_is_mitsuba_envs(monkeypatch, tmp_path):
+    """available() finds libLLVM 19 through glossrig.twin.mitsuba_env.llvm19_path (one search):
+    a set DRJIT_LIBLLVM_PATH naming an existing libLLVM 19 is kept, else Debian's paths are
+    tried, and without either there is none."""
+    from glossrig.twin import mitsuba_env
+
+    lib = tmp_path / "libLLVM.so.19.1"
+    lib.write_bytes(b"")
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(lib))
+    assert mitsuba_env.llvm19_path() == str(lib)
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "missing.so"))
+    monkeypatch.setattr(mitsuba_env, "_LLVM19", (str(tmp_path / "nope.so.19.1"), str(lib)))
+    assert mitsuba_env.llvm19_path() == str(lib)
+    monkeypatch.setattr(mitsuba_env, "_LLVM19", ())
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "missing.so"))
+    assert mitsuba_env.llvm19_path() is None

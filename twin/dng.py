@@ -23,13 +23,15 @@ gives the matching pair for a sensor with unequal channel sensitivities.
 The measurement pipeline never uses these tags (it works on raw CFA values);
 they only make the files render plausibly in raw viewers.
 
-Writes are atomic (:func:`glossrig.core.atomic.atomic_write`): the file is built
-under a temporary name in the target folder, fsynced and then linked/renamed into
-place, so a reader (or a crash) never sees half a file, and an existing file is
+Writes are atomic (:func:`glossrig.core.atomic.atomic_write`): the file is built in
+memory (and hashed there), written under a temporary name in the target folder, fsynced
+and then linked/renamed into place, so a reader (or a crash) never sees half a file, and an existing file is
 never replaced unless ``overwrite=True``.
 """
 from __future__ import annotations
 
+import hashlib
+import io
 import os
 import struct
 from datetime import datetime
@@ -39,8 +41,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from glossrig.core.atomic import atomic_write
-from glossrig.core.capture import sha256_file
+from glossrig.core.atomic import atomic_write_bytes
 from glossrig.core.calibration.demosaic import cfa_array
 from glossrig.core.errors import InputError
 
@@ -206,28 +207,33 @@ def write_dng(path: str | Path, mosaic: np.ndarray, *, cfa: str = "RGGB",
     ]
     exif = _exif_entries(float(exposure_s), float(iso), float(aperture), time)
 
-    def fill(tmp: Path) -> None:
-        tifffile.imwrite(tmp, data, photometric=32803, byteorder="<", bigtiff=False, metadata=None,
-                         software="glossrig twin", description=extra_description,
-                         datetime=time.strftime("%Y:%m:%d %H:%M:%S"), extratags=extratags)
-        with tifffile.TiffFile(tmp) as tf:
-            placeholder = tf.pages[0].tags[_TAG_EXIF_PLACEHOLDER]
-            entry_at, pointer_at = placeholder.offset, placeholder.valueoffset
-        with open(tmp, "r+b") as f:
-            end = f.seek(0, os.SEEK_END)
-            if end % 2:
-                f.write(b"\0")
-                end += 1
-            if end + 4096 >= 2 ** 32:
-                raise InputError("image too large for a classic TIFF/DNG", path=path)
-            f.write(_exif_ifd(exif, end))
-            f.seek(entry_at)
-            f.write(struct.pack("<H", _TAG_EXIF_IFD))
-            f.seek(pointer_at)
-            f.write(struct.pack("<I", end))
-
+    # The file is built in memory (tifffile's IFD0 and image, then the EXIF IFD appended and
+    # pointed to), hashed there and written once: no second pass over the file to patch or hash it.
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, data, photometric=32803, byteorder="<", bigtiff=False, metadata=None,
+                     software="glossrig twin", description=extra_description,
+                     datetime=time.strftime("%Y:%m:%d %H:%M:%S"), extratags=extratags)
+    buf.seek(0)
+    with tifffile.TiffFile(buf) as tf:
+        placeholder = tf.pages[0].tags[_TAG_EXIF_PLACEHOLDER]
+        entry_at, pointer_at = placeholder.offset, placeholder.valueoffset
+    end = buf.seek(0, os.SEEK_END)
+    if end % 2:
+        buf.write(b"\0")
+        end += 1
+    if end + 4096 >= 2 ** 32:
+        raise InputError("image too large for a classic TIFF/DNG", path=path)
+    buf.write(_exif_ifd(exif, end))
+    buf.seek(entry_at)
+    buf.write(struct.pack("<H", _TAG_EXIF_IFD))
+    buf.seek(pointer_at)
+    buf.write(struct.pack("<I", end))
+    content = buf.getbuffer()
+    digest = hashlib.sha256(content).hexdigest()
     try:
-        atomic_write(path, fill, overwrite=overwrite)
+        atomic_write_bytes(path, content, overwrite=overwrite)
     except FileExistsError:
         raise InputError("refusing to overwrite an existing file (pass overwrite=True)", path=path) from None
-    return sha256_file(path)
+    finally:
+        content.release()
+    return digest

@@ -21,17 +21,26 @@ _LLVM19 = ("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1", "/usr/lib/aarch64-linux-
 _mi = None
 
 
+def llvm19_path() -> str | None:
+    """The libLLVM 19 that Dr.Jit's LLVM backend is to load (steps 1-2 above: the
+    ``DRJIT_LIBLLVM_PATH`` already set, else the first of Debian's paths that exists, which is
+    then put into ``DRJIT_LIBLLVM_PATH``), or None. Must run before Dr.Jit is first imported."""
+    path = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if path and Path(path).exists() and "19" in Path(path).name:
+        return path
+    for p in _LLVM19:
+        if Path(p).exists():
+            os.environ["DRJIT_LIBLLVM_PATH"] = p
+            return p
+    return None
+
+
 def choose_variant() -> str:
     forced = os.environ.get("GLOSSRIG_MITSUBA_VARIANT")
     if forced:
         return forced
-    path = os.environ.get("DRJIT_LIBLLVM_PATH")
-    if path and Path(path).exists() and "19" in Path(path).name:
+    if llvm19_path() is not None:
         return "llvm_ad_rgb"
-    for p in _LLVM19:
-        if Path(p).exists():
-            os.environ["DRJIT_LIBLLVM_PATH"] = p
-            return "llvm_ad_rgb"
     warnings.warn("libLLVM 19 not found (Dr.Jit's LLVM backend crashes with LLVM 15): "
                   "falling back to Mitsuba's slow scalar_rgb variant. Run `source .ci/env.sh` "
                   "as root to install libllvm19.", RuntimeWarning, stacklevel=2)

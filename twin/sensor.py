@@ -57,9 +57,11 @@ It must return an array of the same shape (it may modify its argument in
 place and return it). ``ctx`` is a :class:`SensorContext` with the exposure,
 ISO, f-number, frame index, the frame's random generator and the sensor.
 
-Memory: a full frame is 6032 x 4032; the model holds one float32 (H, W)
-work array (two with the fast path) besides the caller's radiance, and draws
-noise in blocks (of rows, or of :data:`glossrig.twin.sensor_drjit.BLOCK` pixels).
+Memory: a full frame is 6032 x 4032; the reference path holds one float32
+(H, W) work array besides the caller's radiance and draws noise in blocks of
+:data:`BLOCK_ROWS` rows; the fast path holds the prepared radiance (float32,
+(H, W)) and per exposure two float32 half-frames and the uint16 mosaic in
+Dr.Jit memory.
 """
 from __future__ import annotations
 
@@ -375,7 +377,7 @@ class SensorModel:
         if not rounded:
             np.rint(e, out=e)
             np.clip(e, 0, self.white_level, out=e)
-        return e.astype(np.uint16)
+        return e.astype(np.uint16, copy=False)
 
     def _noise_reference(self, e: np.ndarray, rng: np.random.Generator, exposure_s: float, inv_k: float) -> None:
         """Steps 3-7 in NumPy, in place: expected electrons ``e`` -> DN with black level."""

@@ -27,24 +27,30 @@ exactly:
   (8e-9 of its mass; 17 e- with the rig's 3 e- read noise), a change of its variance by
   3e-7 relative.
 
-Work layout: a frame is one kernel launch whose lane j takes pixels j and j + ceil(n / 2)
-(contiguous loads, one Box-Muller transform for both read-noise draws); each branch (the
-shortcut, inversion, PTRS's first try) runs only in the SIMD packets that need it
-(``dr.if_stmt``), and the pixels whose first PTRS try needs the full logarithmic test (about
-a quarter of those with lambda >= 10) are compacted (``dr.compress``) and finished in a
-second launch, so that no packet waits on a few slow lanes. A sequence hands its radiance to
-Dr.Jit once (:class:`Rate`, :meth:`glossrig.twin.sensor.SensorModel.prepare`); an exposure
-then costs one pass of compiled code and the copy of its result.
+Work layout: a frame is one kernel launch whose lane j takes the pixel pair 2 j, 2 j + 1
+(flat index; contiguous loads from the even and odd pixels of :class:`Rate`, one Box-Muller
+transform for both read-noise draws); each branch (the shortcut, inversion, PTRS's first try)
+runs only in the SIMD packets that need it (``dr.if_stmt``), and the pixels whose first PTRS
+try needs the full logarithmic test (about a quarter of those with lambda >= 10) are compacted
+(``dr.compress``) and finished in a second launch, so that no packet waits on a few slow
+lanes. A sequence hands its radiance to Dr.Jit once (:class:`Rate`,
+:meth:`glossrig.twin.sensor.SensorModel.prepare`); an exposure then costs one pass of compiled
+code, and its rounded mosaic is written as one UInt32 per pixel pair that NumPy reads as the
+uint16 mosaic without a copy (issue 19: the float32 copy and the uint16 conversion per
+exposure are gone).
 
 Random streams: every pixel (flat index i = row * W + col) has its own PCG32 generator (M. E.
 O'Neill, "PCG: A Family of Simple Fast Space-Efficient Statistically Good Algorithms for
-Random Number Generation", HMC-CS-2014-0905) for its Poisson draw, and every lane one for the
-read noise of its two pixels; a generator's state is a SplitMix64 hash (G. Steele, D. Lea, C.
-Flood, "Fast splittable pseudorandom number generators", OOPSLA 2014) of the frame's 64-bit
-seed and the index, its increment the frame's. A pixel's values therefore depend only on the
-seed and its index - not on the thread count or the order of evaluation, and a compacted
-pixel restarts its own stream so its first PTRS try is the one already made - so the same
-seed gives the same mosaic bit for bit on any machine with the LLVM backend.
+Random Number Generation", HMC-CS-2014-0905) for its Poisson draw, and every pixel pair
+(2 j, 2 j + 1) one for the read noise of its two pixels (the cosine of its Box-Muller
+transform for pixel 2 j, the sine for 2 j + 1; before issue 19's second round the pairs were
+j and j + ceil(n / 2): the same distribution, other draws); a generator's state is a
+SplitMix64 hash (G. Steele, D. Lea, C. Flood, "Fast splittable pseudorandom number
+generators", OOPSLA 2014) of the frame's 64-bit seed and the index, its increment the
+frame's. A pixel's values therefore depend only on the seed and its index - not on the
+thread count or the order of evaluation, and a compacted pixel restarts its own stream so its
+first PTRS try is the one already made - so the same seed gives the same mosaic bit for bit
+on any machine with the LLVM backend.
 
 Dr.Jit's LLVM backend needs libLLVM 19 (``glossrig.twin.mitsuba_env``); where it is
 missing :func:`available` is False and the sensor model falls back to its NumPy
@@ -53,10 +59,10 @@ reference path (other random draws, the same statistics) with a warning.
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
+
+from glossrig.core.errors import InputError
 
 __all__ = ["available", "noise_dn", "full_well_shortcut", "Rate"]
 
@@ -80,16 +86,10 @@ def available() -> bool:
     """Whether Dr.Jit's LLVM backend can run here (libLLVM 19 present; decided before Dr.Jit
     is first imported, as :mod:`glossrig.twin.mitsuba_env` does for Mitsuba)."""
     if "ok" not in _state:
-        from .mitsuba_env import _LLVM19
+        from .mitsuba_env import llvm19_path
 
-        path = os.environ.get("DRJIT_LIBLLVM_PATH")
-        if not (path and Path(path).exists() and "19" in Path(path).name):
-            found = [p for p in _LLVM19 if Path(p).exists()]
-            if found:
-                os.environ["DRJIT_LIBLLVM_PATH"] = found[0]
-            path = found[0] if found else None
         ok = False
-        if path:
+        if llvm19_path() is not None:
             import drjit as dr
 
             ok = bool(dr.has_backend(dr.JitBackend.LLVM))
@@ -159,14 +159,18 @@ def _loggam(dr, x):
     return gl - dr.log(prod)
 
 
-def _inversion(lam, rng):
+def _inversion(lam, rng, p):
     """Poisson(lam) for lam < 10 by sequential search of the CDF in float64 (Devroye 1986,
-    X.3.2): X = min{k : U < F(k)}, one uniform."""
+    X.3.2): X = min{k : U < F(k)}, one uniform. F(0) = exp(-lam) is the frame's constant
+    exp(-dark electrons) where lam is the dark signal alone (a pixel that sees no light: the
+    background, 65 % of the pixels of LED 9's full-scale render of sample_2_6), computed per
+    pixel only in the SIMD packets holding a lit pixel (``dr.if_stmt``)."""
     import drjit as dr
     import drjit.llvm as L
 
     u = rng.next_float64()
-    p0 = dr.exp(-lam)
+    p0 = dr.if_stmt(args=(lam,), cond=lam != p["dark"], true_fn=lambda lam: dr.exp(-lam),
+                    false_fn=lambda lam: dr.zeros(L.Float64, dr.width(lam)) + p["p0_dark"])
 
     def body(k, pk, cdf, done):
         k1 = k + 1.0
@@ -297,7 +301,8 @@ def _first_pass(rate, z, gidx, seed, width, p):
     small = lam < SMALL_LAMBDA
     large = ~small & ~skip
     zero = dr.zeros(L.Float64, dr.width(lam))
-    k, rng = dr.if_stmt(args=(lam, rng), cond=small, true_fn=_inversion, false_fn=lambda lam, rng: (zero, rng))
+    k, rng = dr.if_stmt(args=(lam, rng), cond=small, true_fn=lambda lam, rng: _inversion(lam, rng, p),
+                        false_fn=lambda lam, rng: (zero, rng))
 
     def first_try(lam, rng):
         kl, quick, _ = _ptrs_try(lam, rng, dr.ones(L.Bool, dr.width(lam)))
@@ -311,64 +316,81 @@ def _first_pass(rate, z, gidx, seed, width, p):
     return dr.select(pending, rest, _add_electrons(k, rest, p)), pending
 
 
-def _pending_pass(dn, pending, rate, first, seed, p):
-    """PTRS to the end (Hoermann 1993) for the pixels whose first try needs the full test,
-    compacted (``dr.compress``) so that no SIMD packet waits on a few slow lanes; their
-    Poisson stream starts afresh, so the first try is the very one :func:`_first_pass` made.
-    Adds their photo-electrons to ``dn``."""
+def _pending_pass(dn, idx, rate, parity: int, seed, p) -> None:
+    """PTRS to the end (Hoermann 1993) for the lanes ``idx`` whose pixel 2 j + ``parity``'s first
+    try needs the full test, compacted (``dr.compress``) so that no SIMD packet waits on a few
+    slow lanes; their Poisson stream starts afresh, so the first try is the very one
+    :func:`_first_pass` made. Adds their photo-electrons to ``dn``. The values are evaluated
+    before the scatter, so that ``dn`` is updated in place (a scatter into an array its own
+    operand still reads would copy the whole array first)."""
     import drjit as dr
     import drjit.llvm as L
 
-    idx = dr.compress(pending)
     if not dr.width(idx):
         return
-    k = _ptrs(_lam(dr.gather(L.Float, rate, idx), p), _stream(seed, L.UInt64(idx) + first))
-    dr.scatter(dn, _add_electrons(k, dr.gather(L.Float, dn, idx), p), idx)
+    k = _ptrs(_lam(dr.gather(L.Float, rate, idx), p), _stream(seed, 2 * L.UInt64(idx) + parity))
+    value = _add_electrons(k, dr.gather(L.Float, dn, idx), p)
+    dr.eval(value)
+    dr.scatter(dn, value, idx)
 
 
-def _frame(rate_a, rate_b, n: int, seeds, width, p) -> np.ndarray:
-    """DN of a frame of ``n`` pixels (flat indices 0..n-1). Lane j takes pixel j (``rate_a``,
-    the first m = ceil(n / 2) pixels) and pixel j + m (``rate_b``, padded to m): contiguous
-    loads and stores, and one read-noise transform for two pixels."""
+def _frame(rate: Rate, seeds, width, p, packed: bool) -> np.ndarray:
+    """DN of a frame (flat pixel indices 0..n-1, n = ``rate.size``). Lane j takes the pixel pair
+    2 j, 2 j + 1 (``rate.a``, ``rate.b``: contiguous loads, one read-noise transform for both
+    pixels). ``packed`` (the values are rounded integers in [0, 65535]): the pair is stored as
+    one UInt32, low half first, whose memory NumPy views as the uint16 mosaic without a copy;
+    else float32 DN, interleaved."""
     import drjit as dr
     import drjit.llvm as L
 
-    m = dr.width(rate_a)
+    m = dr.width(rate.a)
     lane = dr.arange(L.UInt64, m)
+    even = 2 * lane
     za, zb = _read_noise(seeds[1], lane)
-    dn_a, pend_a = _first_pass(rate_a, za, lane, seeds[0], width, p)
-    dn_b, pend_b = _first_pass(rate_b, zb, lane + m, seeds[0], width, p)
+    dn_a, pend_a = _first_pass(rate.a, za, even, seeds[0], width, p)
+    dn_b, pend_b = _first_pass(rate.b, zb, even + 1, seeds[0], width, p)
     dr.eval(dn_a, pend_a, dn_b, pend_b)
-    _pending_pass(dn_a, pend_a, rate_a, 0, seeds[0], p)
-    _pending_pass(dn_b, pend_b, rate_b, m, seeds[0], p)
+    _pending_pass(dn_a, dr.compress(pend_a), rate.a, 0, seeds[0], p)
+    _pending_pass(dn_b, dr.compress(pend_b), rate.b, 1, seeds[0], p)
+    if packed:
+        pair = L.UInt32(dn_a) | (L.UInt32(dn_b) << 16)
+        dr.eval(pair)
+        return pair.numpy().view("<u2")[:rate.size]
     out = np.empty(2 * m, np.float32)
-    out[:m] = dn_a.numpy()
-    out[m:] = dn_b.numpy()
-    return out[:n]
+    out[0::2] = dn_a.numpy()
+    out[1::2] = dn_b.numpy()
+    return out[:rate.size]
 
 
 class Rate:
     """A frame's expected photo-electrons per unit exposure (``SensorModel`` step 1 with
-    t (11/N)^2 gain = 1), held in Dr.Jit memory as the two halves :func:`_frame` reads, so a
-    sequence converts its radiance once, not once per exposure."""
+    t (11/N)^2 gain = 1), held in Dr.Jit memory as the even and odd pixels (flat index) that
+    :func:`_frame`'s lanes read, so a sequence converts its radiance once, not once per
+    exposure."""
 
     def __init__(self, mosaic: np.ndarray):
         import drjit.llvm as L
 
-        e = np.ascontiguousarray(mosaic, np.float32)
+        e = np.asarray(mosaic, np.float32)
+        if e.ndim != 2 or e.size < 1:
+            raise InputError(f"expected electrons must be a non-empty (H, W) array, got shape {e.shape}")
         self.shape = e.shape
+        self.size = e.size
         flat = e.reshape(-1)
         m = (flat.size + 1) // 2
-        self.a, self.b = L.Float(flat[:m]), L.Float(np.concatenate([flat[m:], np.zeros(2 * m - flat.size, np.float32)]))
+        odd = np.zeros(m, np.float32)
+        odd[:flat.size // 2] = flat[1::2]
+        self.a, self.b = L.Float(np.ascontiguousarray(flat[0::2])), L.Float(odd)
 
 
 def noise_dn(expected_e, *, seed: int, dark_e: float, full_well_e: float, read_e: float,
              inv_k: float, black_2x2: np.ndarray, white: float | None = None, scale: float = 1.0) -> np.ndarray:
-    """Raw values (float32 (H, W), black level included) of a frame whose expected photo-
-    electrons per pixel are ``scale`` times ``expected_e`` (float32 (H, W), or a :class:`Rate`):
-    sensor.py steps 3-7 (Poisson(e + dark), full well, + Normal(0, read), / K, + black), and
-    with ``white`` also step 9's rounding and clipping to [0, white]. ``seed``: 64-bit frame
-    seed (module docstring: streams per pixel)."""
+    """Raw values ((H, W), black level included) of a frame whose expected photo-electrons per
+    pixel are ``scale`` times ``expected_e`` (float32 (H, W), or a :class:`Rate`): sensor.py
+    steps 3-7 (Poisson(e + dark), full well, + Normal(0, read), / K, + black) as float32, and
+    with ``white`` (at most 65535) also step 9's rounding and clipping to [0, white], as uint16
+    (a view of Dr.Jit's memory, no copy). ``seed``: 64-bit frame seed (module
+    docstring: streams per pixel)."""
     import drjit as dr
     import drjit.llvm as L
 
@@ -381,7 +403,8 @@ def noise_dn(expected_e, *, seed: int, dark_e: float, full_well_e: float, read_e
     def op(cls, v):
         return dr.opaque(cls, v)
 
-    p = {"dark": op(L.Float64, float(dark_e)), "full": op(L.Float64, float(full_well_e)),
+    p = {"dark": op(L.Float64, float(dark_e)), "p0_dark": op(L.Float64, math.exp(-float(dark_e))),
+         "full": op(L.Float64, float(full_well_e)),
          "skip": op(L.Float64, full_well_shortcut(full_well_e)), "read": op(L.Float, float(read_e)),
          "inv_k": op(L.Float, float(inv_k)), "scale": op(L.Float, float(scale)),
          "white": None if white is None else op(L.Float, float(white))}
@@ -391,4 +414,4 @@ def noise_dn(expected_e, *, seed: int, dark_e: float, full_well_e: float, read_e
         p.update({f"b{i}{j}": op(L.Float, float(bl[i, j])) for i in range(2) for j in range(2)})
     seeds = tuple((op(L.UInt64, s), op(L.UInt64, _splitmix64_int(s) | 1))      # (hash key, PCG increment)
                   for s in (int(seed) & _MASK64, (int(seed) ^ 0x9E3779B97F4A7C15) & _MASK64))   # Poisson, read noise
-    return _frame(rate.a, rate.b, h * w, seeds, op(L.Float64, float(w)), p).reshape(h, w)
+    return _frame(rate, seeds, op(L.Float64, float(w)), p, packed=white is not None and white <= 65535).reshape(h, w)

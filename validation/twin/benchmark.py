@@ -7,11 +7,12 @@ render.
 
 Per scale: scene set-up (``VirtualRig(...)``, then a second one for the same rig in the
 same process), the first render (Dr.Jit/Mitsuba JIT compilation included) and a second
-render of LED 9, then from it, per repeat, the 18 exposures of Table 4.1 four ways: sensor model
-only (``expose_reference`` - the figure the "before" table measured - and ``expose`` of the
-radiance prepared once per sequence, its preparation included, as ``VirtualRig.shoot`` does),
-and whole shots (``VirtualRig.shoot``: LED gain, sensor, DNG written and checksummed) with
-either sensor path. Times are medians over ``--repeats`` (whole shots: ``--shot-repeats``);
+render of LED 9, then from it, per repeat, the 18 exposures of Table 4.1 five ways: sensor model
+only (``expose_reference`` - the figure the "before" table measured -, the Dr.Jit kernel as
+committed in :data:`PREVIOUS` (the first round of issue 19, loaded from git), and ``expose`` of
+the radiance prepared once per sequence, its preparation included, as ``VirtualRig.shoot``
+does), and whole shots (``VirtualRig.shoot``: LED gain, sensor, DNG written and checksummed)
+with the reference and the current sensor path. Times are medians over ``--repeats`` (whole shots: ``--shot-repeats``);
 the ratios are of medians taken in this one run. The load average of the machine is recorded with the figures (the machine is
 shared: the figures are wall-clock seconds of this process, not of an idle machine).
 """
@@ -27,6 +28,40 @@ from pathlib import Path
 from validation.paths import RIG, ROOT
 
 AFTER = "## After (issue 19)"
+#: The commit whose Dr.Jit sensor kernel (twin/sensor_drjit.py) is measured as "previous".
+PREVIOUS = "506e81b"
+
+
+def _previous_kernel():
+    """twin/sensor_drjit.py as of :data:`PREVIOUS`, imported as a sibling module of the current
+    one (its relative imports resolve), or None where git or the commit is missing."""
+    import importlib.util
+    import subprocess
+    import sys
+
+    try:
+        src = subprocess.run(["git", "show", f"{PREVIOUS}:twin/sensor_drjit.py"], cwd=ROOT, check=True,
+                             capture_output=True, text=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    name = f"glossrig.twin._sensor_drjit_{PREVIOUS}"
+    spec = importlib.util.spec_from_loader(name, loader=None)
+    assert spec is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    exec(compile(src, f"{PREVIOUS}:twin/sensor_drjit.py", "exec"), mod.__dict__)
+    return mod
+
+
+def _expose_previous(kernel, sensor, rate, t, iso, aperture, rng):
+    """``SensorModel.expose`` of a prepared radiance (no gain, no effects) with ``kernel``'s noise step."""
+    import numpy as np
+
+    seed = int(rng.integers(0, 2 ** 64, dtype=np.uint64))
+    e = kernel.noise_dn(rate, seed=seed, dark_e=sensor.dark_current_e_s * t, full_well_e=sensor.full_well_e,
+                        read_e=sensor.read_noise_e, inv_k=1.0 / sensor.conversion_gain(iso),
+                        black_2x2=sensor.black_2x2(), white=sensor.white_level, scale=(11.0 / aperture) ** 2 * t)
+    return e.astype(np.uint16)
 
 
 class _ReferenceSensor:
@@ -68,18 +103,25 @@ def bench_scale(scale: float, repeats: int, shot_repeats: int) -> dict:
     vr.led_radiance(9)
     first = time.perf_counter() - t0
     sensor = vr.sensor
-    times: dict[str, list[float]] = {k: [] for k in ("render", "ref", "fast", "shots_ref", "shots_fast")}
-    cpu: dict[str, list[float]] = {"ref": [], "fast": []}
+    previous = _previous_kernel()
+    keys = ("ref", "prev", "fast") if previous is not None else ("ref", "fast")
+    times: dict[str, list[float]] = {k: [] for k in ("render", *keys, "shots_ref", "shots_fast")}
+    cpu: dict[str, list[float]] = {k: [] for k in keys}
     vr._cache.clear()
     t0 = time.perf_counter()
     rad = vr.led_radiance(9)
     times["render"].append(time.perf_counter() - t0)
     with tempfile.TemporaryDirectory(prefix="glossrig-twin-bench-") as d:
         for k in range(repeats):
-            for key in ("ref", "fast"):
+            for key in keys:
                 t0, c0 = time.perf_counter(), time.process_time()
                 if key == "ref":
                     src, expose = rad, sensor.expose_reference
+                elif key == "prev":
+                    src = previous.Rate(sensor.expected_electrons(rad, 1.0, 11.0))
+
+                    def expose(rate, t, iso, aperture, rng):
+                        return _expose_previous(previous, sensor, rate, t, iso, aperture, rng)
                 else:                               # as VirtualRig.shoot does: prepared once per sequence
                     src, expose = sensor.prepare(rad), sensor.expose
                 for i, t in enumerate(rig.exposure_times_s):
@@ -94,9 +136,11 @@ def bench_scale(scale: float, repeats: int, shot_repeats: int) -> dict:
                     for f in Path(d).glob("*.dng"):
                         f.unlink()
                 vr.sensor = sensor
+    import drjit as dr
+
     w, h = vr.lens.size
     med = {k: statistics.median(v) for k, v in times.items()}
-    return {"scale": scale, "size": f"{w}x{h}", "setup_s": setup, "setup_again_s": setup_again,
+    return {"scale": scale, "size": f"{w}x{h}", "threads": dr.thread_count(), "setup_s": setup, "setup_again_s": setup_again,
             "first_render_s": first, **{f"{k}_s": v for k, v in med.items()},
             **{f"{k}_cpu_s": statistics.median(v) for k, v in cpu.items()},
             "runs": {k: [round(x, 2) for x in v] for k, v in times.items()},
@@ -116,15 +160,25 @@ def report(rows: list[dict], repeats: int, shot_repeats: int, variant: str, load
     for r in rows:
         lines.append(f"| {r['scale']} | {r['size']} | {r['setup_s']:.2f} | {r['setup_again_s']:.2f} | "
                      f"{r['first_render_s']:.2f} | {r['render_s']:.2f} |")
-    lines += ["", "18-exposure sequence from one render: wall-clock seconds (CPU seconds of the process, all "
-              "threads, in brackets):", "",
-              "| scale | sensor model, NumPy reference (before) | sensor model, Dr.Jit | ratio wall (CPU) | "
-              "whole shots incl. DNG, reference sensor | whole shots incl. DNG, Dr.Jit sensor | ratio |",
-              "|---|---|---|---|---|---|---|"]
+    prev = all("prev_s" in r for r in rows)
+    lines += ["", f"18-exposure sequence from one render: wall-clock seconds (CPU seconds of the process, all "
+              f"threads, in brackets; Dr.Jit ran {rows[0]['threads']} threads on {os.cpu_count()} cores):", "",
+              "| scale | sensor model, NumPy reference (before) | "
+              + (f"sensor model, Dr.Jit as of {PREVIOUS} | " if prev else "")
+              + "sensor model, Dr.Jit | ratio to reference, wall (CPU) | "
+              + ("ratio to " + PREVIOUS + ", wall (CPU) | " if prev else "")
+              + "whole shots incl. DNG, reference sensor | whole shots incl. DNG, Dr.Jit sensor | ratio |",
+              "|---|---|---|---|---|---|---|" + ("---|---|" if prev else "")]
+
+    def ratio(r, a, b):
+        return f"{r[a + '_s'] / r[b + '_s']:.1f}x ({r[a + '_cpu_s'] / r[b + '_cpu_s']:.1f}x)"
+
     for r in rows:
-        lines.append(f"| {r['scale']} | {r['ref_s']:.2f} ({r['ref_cpu_s']:.2f}) | {r['fast_s']:.2f} ({r['fast_cpu_s']:.2f}) | "
-                     f"{r['ref_s'] / r['fast_s']:.1f}x ({r['ref_cpu_s'] / r['fast_cpu_s']:.1f}x) | "
-                     f"{r['shots_ref_s']:.2f} | {r['shots_fast_s']:.2f} | {r['shots_ref_s'] / r['shots_fast_s']:.1f}x |")
+        lines.append(f"| {r['scale']} | {r['ref_s']:.2f} ({r['ref_cpu_s']:.2f}) | "
+                     + (f"{r['prev_s']:.2f} ({r['prev_cpu_s']:.2f}) | " if prev else "")
+                     + f"{r['fast_s']:.2f} ({r['fast_cpu_s']:.2f}) | {ratio(r, 'ref', 'fast')} | "
+                     + (f"{ratio(r, 'prev', 'fast')} | " if prev else "")
+                     + f"{r['shots_ref_s']:.2f} | {r['shots_fast_s']:.2f} | {r['shots_ref_s'] / r['shots_fast_s']:.1f}x |")
     lines += ["", "Single runs (s): " + "; ".join(f"scale {r['scale']}: {r['runs']}, CPU {r['cpu_runs']}" for r in rows),
               ""]
     return "\n".join(lines)
