@@ -102,3 +102,26 @@ def test_footprint_average_attenuates_the_peak_by_the_kernel_variance(render):
     spec0 = f0 - p.rho_d / np.pi
     assert (f[0] - p.rho_d / np.pi) / spec0 == pytest.approx(1 - 0.01, abs=3e-4)
     assert f[1] == pytest.approx(f0, rel=1e-12)
+
+
+def test_point_vs_footprint_section_states_the_bias_of_the_wide_resolvable_lobes(tmp_path):
+    """The before/after section's alpha bias is the mean over the resolvable lobes that
+    are not in the footprint study (the narrow ones), with the standard error of that
+    mean over materials; unresolvable lobes and the narrow ones stay out of it."""
+    def entry(ay_point, ay_fp, resolvable=True):
+        err = {"rho_d": 0.0, "rho_s": 0.0, "alpha_x": 0.0, "alpha_y": ay_fp, "lobe_rotation_deg": 0.0}
+        perr = {**err, "alpha_y": ay_point}
+        ok = {k: resolvable for k in err} | {"rho_d": True}
+        return {"err": err, "resolvable": ok, "met": True, "point": {"err": perr, "met": True}}
+
+    ev = {"a": entry(0.010, 0.001), "b": entry(0.012, -0.001), "c": entry(0.014, 0.003),
+          "narrow": entry(0.5, 0.2), "flat": entry(-0.4, 0.9, resolvable=False)}
+    text = "\n".join(study.section_point_vs_footprint(tmp_path, ev, ["narrow"]))
+    sem_pt = np.std([0.010, 0.012, 0.014], ddof=1) / math.sqrt(3)
+    sem_fp = np.std([0.001, -0.001, 0.003], ddof=1) / math.sqrt(3)
+    line = next(x for x in text.splitlines() if x.startswith("- alpha_y"))
+    assert line == (f"- alpha_y: point model mean +1.20 % (standard error of the mean over materials "
+                    f"{100 * sem_pt:.2f} %), largest |error| 1.40 %; footprint-aware mean +0.10 % (standard error "
+                    f"of the mean over materials {100 * sem_fp:.2f} %), largest |error| 0.30 %.")
+    assert "over the 3 resolvable lobes wider than a footprint (a, b, c;" in text
+    assert "| flat | (+0.00 %) -> (+0.00 %) | (+0.00 %) -> (+0.00 %) | (-40.00 %) -> (+90.00 %) |" in text

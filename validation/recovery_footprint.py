@@ -20,7 +20,11 @@ angles of neighbouring blocks (so from the calibrated geometry, not the nominal 
 * the forward model: the true BRDF averaged over every sample's footprint, against the
   point value (``predicted``) and against what the pipeline extracted (``observed``);
 * the parameters a fit of eq. 4.79 recovers from the footprint-averaged truth without
-  any noise (``footprint-only fit``): the bias the footprint alone causes.
+  any noise (``footprint-only fit``): the bias the footprint alone causes;
+* for captures of the current renderer (``--render area``), the parameters the
+  footprint-averaged fit (:mod:`glossrig.core.fitting.footprint_model`, ``glossrig fit``'s
+  default) recovers from the same values (``footprint-model fit``): what the
+  footprint leaves once the fit models it.
 
 ``--render old`` adds the twin's earlier lens resampling (one bilinear read per output
 pixel from a canvas at the output resolution: on average a further 1-pixel tent) to
@@ -58,11 +62,14 @@ def trend(theta_h_deg, pred, obs, n_bins: int = 6) -> list[dict]:
     return out
 
 
-def study(work: Path, material: str, render: str, fit: bool = True, at_scale: float | None = None) -> dict:
+def study(work: Path, material: str, render: str, fit: bool = True, at_scale: float | None = None,
+          pixel_rule: str = "midpoint") -> dict:
     """The footprint numbers of one material (module docstring). ``at_scale``: predict
     for captures at that scale instead of the one measured, by scaling the measured
     Jacobian by (measured scale / at_scale) at the same samples (the footprint shrinks
-    with the pixel; the number of samples, which grows, is not modelled)."""
+    with the pixel; the number of samples, which grows, is not modelled). ``pixel_rule``:
+    the pixel-area rule of the footprint-averaged truth
+    (:func:`glossrig.core.models.footprint.luminance_kernel`)."""
     from glossrig.core.fitting.fit import fit_samples, parameter_errors
     from glossrig.core.samples import luminance, read_samples
     from glossrig.core.models.ward import WardParams, ward_from_angles
@@ -73,11 +80,13 @@ def study(work: Path, material: str, render: str, fit: bool = True, at_scale: fl
     from glossrig.core.rig import default_rig_path, load_rig
 
     cfa = load_rig(default_rig_path()).camera.cfa            # the twin's sensor (scenes/thesis_rig.toml)
-    offs, w = luminance_kernel(cfa, render)
+    offs, w = luminance_kernel(cfa, render, pixel_rule=pixel_rule)
     J = slope_jacobian(df)
     scale = truth_json.get("scale")
     if at_scale is not None:
-        J *= scale / at_scale
+        if scale is None:
+            raise ValueError(f"{work / material}: truth.json has no scale; --at-scale needs it")
+        J *= float(scale) / at_scale
 
     s = slopes(df["theta_h"].to_numpy(), df["phi_h"].to_numpy())
     q = exponent(s, p)
@@ -97,7 +106,7 @@ def study(work: Path, material: str, render: str, fit: bool = True, at_scale: fl
     pred = f_meas[sel] / f_point[sel] - 1
     obs = y[sel] / f_point[sel] - 1
     out = {
-        "material": material, "render": render, "scale": at_scale or scale, "measured_scale": scale,
+        "material": material, "render": render, "pixel_rule": pixel_rule, "scale": at_scale or scale, "measured_scale": scale,
         "predicted_from_scale": scale if at_scale is not None else None,
         "truth": p.as_dict(),
         "lobe_fwhm_deg": {"alpha_x": 2 * p.alpha_x * math.sqrt(LN2) * deg, "alpha_y": 2 * p.alpha_y * math.sqrt(LN2) * deg},
@@ -110,7 +119,7 @@ def study(work: Path, material: str, render: str, fit: bool = True, at_scale: fl
         "n_inside_half_max_per_slice": {"median": float(per_slice.median()), "max": int(per_slice.max()),
                                         "slices": int(per_slice.size), "empty": int((per_slice == 0).sum())},
         "n_above_0.05": int(sel.sum()),
-        "peak": {"point": float(f_point.max()), "footprint": float(f_meas.max()), "observed": float(y.max())},
+        "peak": {"point": float(f_point.max()), "footprint": float(f_meas.max()), "observed": float(np.nanmax(y))},
         "median_abs_rel_err_observed": float(np.median(np.abs(obs))),
         "median_abs_rel_err_predicted": float(np.median(np.abs(pred))),
         "median_abs_observed_minus_predicted": float(np.median(np.abs(obs - pred))),
@@ -124,6 +133,14 @@ def study(work: Path, material: str, render: str, fit: bool = True, at_scale: fl
                         footprint=False, budget=False).fits["luminance"]
         out["footprint_only_fit"] = r.params.as_dict()
         out["footprint_only_rel_err"] = parameter_errors(r.params, p)
+        if render == "area" and at_scale is None:
+            # the footprint-averaged model (`glossrig fit`'s default) on the same noise-free values: what is
+            # left when the fit models the footprint (its kernel is the fit's own Gauss rule, the values'
+            # the midpoint rule above, so this also checks the fit's quadrature)
+            r = fit_samples(df.assign(r=f_meas, g=f_meas, b=f_meas), channels=["luminance"],
+                            footprint=True, budget=False).fits["luminance"]
+            out["footprint_model_fit"] = r.params.as_dict()
+            out["footprint_model_rel_err"] = parameter_errors(r.params, p)
     return out
 
 
@@ -133,12 +150,15 @@ def main(argv=None) -> dict:
     ap.add_argument("--materials", default="transparency_sheet,brushed_reproduced,brushed_original")
     ap.add_argument("--render", choices=("area", "old"), default="old")
     ap.add_argument("--no-fit", action="store_true")
+    ap.add_argument("--pixel-rule", default="midpoint",
+                    help="pixel-area rule of the footprint-averaged truth: midpoint (1/4-px grid) or gaussN")
     ap.add_argument("--at-scale", type=float, default=None,
                     help="predict the footprint's effect at this capture scale (Jacobian scaled, same samples)")
     ap.add_argument("--out", default=None, help="default WORK/footprint.json")
     a = ap.parse_args(argv)
     work = Path(a.work)
-    res = {m: study(work, m, a.render, fit=not a.no_fit, at_scale=a.at_scale) for m in a.materials.split(",")}
+    res = {m: study(work, m, a.render, fit=not a.no_fit, at_scale=a.at_scale, pixel_rule=a.pixel_rule)
+           for m in a.materials.split(",")}
     default = work / ("footprint.json" if a.at_scale is None else f"footprint_at_{a.at_scale:g}.json")
     Path(a.out or default).write_text(json.dumps(res, indent=1))
     print(json.dumps(res, indent=1))

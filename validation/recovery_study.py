@@ -9,7 +9,13 @@ and lamps -> extract against a lambert:0.8 reference -> fit, for every material 
 ../shared/data/thesis/ward_params.csv; then writes validation/recovery.md with the
 relative errors of rho_d, rho_s, alpha_x, alpha_y and the absolute error of the lobe
 rotation (luminance fit), against the targets 3 % / 10 % / 10 % / 10 % / 3 degrees.
-Re-running resumes: finished captures, extractions and fits are reused.
+The fit is ``glossrig fit``'s default, eq. 4.79 averaged over each sample's footprint
+(:mod:`glossrig.core.fitting.footprint_model`, issue 15); the study also fits every
+material with the point model (``--no-footprint``, ``WORK/<material>.point.fit.json``)
+and reports both on the same captures, with the mean alpha bias over the resolvable
+lobes that ``WORK/footprint.json`` does not single out as narrow. A material subset
+(``--materials``) keeps the seeds of its position in that list (pipeline_study: seed
+11 + index). Re-running resumes: finished captures, extractions and fits are reused.
 
 The truth is compared in the fit's canonical form (:func:`glossrig.core.fitting.fit.canonical`:
 ``alpha_x >= alpha_y``, rotation in [0, pi)): ``(ax, ay, rot)`` and ``(ay, ax, rot +
@@ -92,22 +98,53 @@ def evaluate(work: Path, rep: dict) -> dict:
         err = parameter_errors(e["fit"], e["truth"])
         ok = resolvable(e["fit"], c)
         out[m] = {"err": err, "contrast": c, "resolvable": ok, "met": judge(err, ok),
-                  "brdf_err": e["median_abs_rel_err"], "residual": e["fit"]["residuals"]["median_abs_relative"]}
+                  "brdf_err": e["median_abs_rel_err"],
+                  "brdf_err_fp": (e.get("footprint") or {}).get("median_abs_rel_err"), "residual": e["fit"]["residuals"]["median_abs_relative"],
+                  "model": (e["fit"].get("footprint") or {}).get("model", "point")}
+        pf = point_fit(work, m)
+        if pf is not None:
+            pe = parameter_errors(pf, e["truth"])
+            out[m]["point"] = {"err": pe, "met": judge(pe, ok)}
     return out
 
 
-def _pct(v: float, ok: bool = True) -> str:
-    s = f"{100 * v:+.1f} %"
+def point_fit_path(work: Path, m: str) -> Path:
+    return work / f"{m}.point.fit.json"
+
+
+def point_fit(work: Path, m: str) -> dict | None:
+    """The luminance fit of the point model (``glossrig fit --no-footprint``) of the same
+    samples, when :func:`point_fits` has made it."""
+    from glossrig.core.fitting.export import read_fit_file
+
+    p = point_fit_path(work, m)
+    return read_fit_file(p).fit.fits["luminance"].to_json() if p.exists() else None
+
+
+def point_fits(work: Path, rep: dict) -> None:
+    """``glossrig fit --no-footprint --calibration-draws 0`` of every fitted material's samples (resumable): the
+    fit before issue 15, on the same captures, for the before/after comparison."""
+    from validation.common import fit
+
+    for m, e in rep["materials"].items():
+        if "fit" in e:
+            fit(work / f"{m}.parquet", point_fit_path(work, m), "--no-footprint", "--calibration-draws", "0")
+
+
+def _pct(v: float, ok: bool = True, digits: int = 1) -> str:
+    s = f"{100 * v:+.{digits}f} %"
     return s if ok else f"({s})"
 
 
 def table(ev: dict, causes: dict) -> str:
     lines = ["| material | rho_d | rho_s | alpha_x | alpha_y | lobe rot. (deg) | lobe contrast / residual | "
-             "BRDF median abs. rel. err. | met |", "|---|---|---|---|---|---|---|---|---|"]
+             "BRDF median abs. rel. err. against the point / footprint-averaged truth | met |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for m, r in ev.items():
         e, ok = r["err"], r["resolvable"]
         rot = f"{e['lobe_rotation_deg']:.2f}"
         verdict = "yes" if r["met"] else "NO"
+        fp_err = "-" if r.get("brdf_err_fp") is None else f"{100 * r['brdf_err_fp']:.1f} %"
         if not ok["rho_s"]:
             verdict += " on rho_d; no resolvable lobe (below)"
         elif not all(ok.values()):
@@ -117,7 +154,7 @@ def table(ev: dict, causes: dict) -> str:
             verdict += f": {causes[m]}"
         lines.append(f"| {m} | {_pct(e['rho_d'])} | {_pct(e['rho_s'], ok['rho_s'])} | {_pct(e['alpha_x'], ok['alpha_x'])} | "
                      f"{_pct(e['alpha_y'], ok['alpha_y'])} | {rot if ok['lobe_rotation_deg'] else '(' + rot + ')'} | "
-                     f"{r['contrast'] / r['residual']:.3g} | {100 * r['brdf_err']:.1f} % | {verdict} |")
+                     f"{r['contrast'] / r['residual']:.3g} | {100 * r['brdf_err']:.1f} % / {fp_err} | {verdict} |")
     return "\n".join(lines)
 
 
@@ -196,10 +233,73 @@ def section_no_lobe(work: Path, rep: dict, ev: dict) -> list[str]:
     return lines
 
 
+def _bias(errs: list[float]) -> str:
+    a = np.array(errs)
+    sem = a.std(ddof=1) / math.sqrt(a.size) if a.size > 1 else math.nan
+    return (f"mean {100 * a.mean():+.2f} % (standard error of the mean over materials {100 * sem:.2f} %), "
+            f"largest |error| {100 * np.abs(a).max():.2f} %")
+
+
+def section_point_vs_footprint(work: Path, ev: dict, narrow) -> list[str]:
+    """The footprint-aware fit (the table above) against the point model on the same
+    samples, and the systematic alpha bias of the lobes not as narrow as a footprint."""
+    both = {m: r for m, r in ev.items() if "point" in r}
+    if not both:
+        return []
+    lines = ["## Footprint-aware fit against the point model, same captures", "",
+             "The study also fits every material's samples with the point model (eq. 4.79 at each sample's angles, "
+             f"the fit before issue 15): `glossrig fit {work}/<material>.parquet --no-footprint --calibration-draws 0 "
+             f"--out {work}/<material>.point.fit.json` (no calibration draws: only its values are compared). Relative errors point -> footprint-aware (rotation: degrees); "
+             "parentheses: not resolvable (criterion above, from the footprint-aware fit).", "",
+             "| material | rho_s | alpha_x | alpha_y | lobe rot. (deg) | met: point / footprint-aware |",
+             "|---|---|---|---|---|---|"]
+    for m, r in both.items():
+        ok, e, pe = r["resolvable"], r["err"], r["point"]["err"]
+        cells = [f"{_pct(pe[k], ok[k], 2)} -> {_pct(e[k], ok[k], 2)}" for k in ("rho_s", "alpha_x", "alpha_y")]
+        rot = f"{pe['lobe_rotation_deg']:.2f} -> {e['lobe_rotation_deg']:.2f}"
+        cells.append(rot if ok["lobe_rotation_deg"] else f"({rot})")
+        lines.append(f"| {m} | {' | '.join(cells)} | {'yes' if r['point']['met'] else 'NO'} / "
+                     f"{'yes' if r['met'] else 'NO'} |")
+    wide = [m for m, r in both.items() if r["resolvable"]["alpha_y"] and m not in narrow]
+    if len(wide) >= 2:
+        lines += ["", f"Systematic alpha bias over the {len(wide)} resolvable lobes wider than a footprint "
+                  f"({', '.join(wide)}; the narrow ones, {', '.join(narrow) or 'none'}, are in the next section):", ""]
+        for k in ("alpha_x", "alpha_y"):
+            lines.append(f"- {k}: point model {_bias([both[m]['point']['err'][k] for m in wide])}; footprint-aware "
+                         f"{_bias([both[m]['err'][k] for m in wide])}.")
+    else:
+        lines += ["", f"Only {len(wide)} resolvable lobe wider than a footprint in this run ({', '.join(wide)}): too "
+                  "few to state a systematic bias over materials. validation/uncertainty_budget.md section 2 has the "
+                  "point and footprint-aware fits of more Table 9.1 materials at scale 0.25 (LEDs 8-11)."]
+    return lines + [""]
+
+
+def _calibration_note(rep: dict) -> list[str]:
+    """Which fits' budgets carry the calibration component (the estimates do not depend on it)."""
+    off = [m for m, e in rep["materials"].items()
+           if "calibration" in (((e.get("fit") or {}).get("uncertainty") or {}).get("budget") or {}).get("omitted", {})]
+    if not off:
+        return []
+    return [f"The fits of {', '.join(off)} were made with `glossrig fit --calibration-draws 0` (no Monte Carlo "
+            "calibration component in their uncertainty budget, to save CPU on a shared machine); the parameter "
+            "estimates, which this table compares, do not depend on it.", ""]
+
+
+def section_before(path: Path) -> list[str]:
+    if not path.exists():
+        return []
+    return ["## Before the footprint-aware fit (earlier renderer, point model)", "",
+            *[x for x in path.read_text().splitlines() if not x.startswith("<!--")], ""]
+
+
+def _four(e: dict) -> str:
+    return f"{_pct(e['rho_s'])}, {_pct(e['alpha_x'])}, {_pct(e['alpha_y'])}, {e['lobe_rotation_deg']:.2f} deg"
+
+
 def _fp_row(fp: dict, fit_err: dict | None) -> str:
-    e = fp.get("footprint_only_rel_err", {})
-    fo = (f"{_pct(e['rho_s'])}, {_pct(e['alpha_x'])}, {_pct(e['alpha_y'])}, {e['lobe_rotation_deg']:.2f} deg"
-          if e else "-")
+    e, em = fp.get("footprint_only_rel_err"), fp.get("footprint_model_rel_err")
+    fo = _four(e) if e else "-"
+    fm = _four(em) if em else "-"
     fe = (f"{_pct(fit_err['rho_s'])}, {_pct(fit_err['alpha_x'])}, {_pct(fit_err['alpha_y'])}, "
           f"{fit_err['lobe_rotation_deg']:.2f} deg" if fit_err else "-")
     s = fp["n_inside_half_max_per_slice"]
@@ -207,14 +307,15 @@ def _fp_row(fp: dict, fit_err: dict | None) -> str:
     return (f"| {fp['material']} | {fp['scale']} | {min(fp['lobe_fwhm_deg'].values()):.2f} / {max(fp['lobe_fwhm_deg'].values()):.2f} | "
             f"{fp['pixel_deg']:.3f} | {fp['block_span_deg']['median']:.2f} | {fp['kernel_rms_deg']:.2f} | "
             f"{fp['n_inside_half_max']} ({s['median']:.0f}; {s['empty']} of {s['slices']} empty) | "
-            f"{fp['peak']['point']:.3g} / {fp['peak']['footprint']:.3g} / {observed} | {fo} | {fe} |")
+            f"{fp['peak']['point']:.3g} / {fp['peak']['footprint']:.3g} / {observed} | {fo} | {fm} | {fe} |")
 
 
 FP_HEADER = ["| material | scale | lobe FWHM, minor / major axis (deg) | theta_h per pixel (deg) | "
              "theta_h across a Bayer block (deg) | kernel RMS (deg) | samples inside half max. (median per LED "
-             "and rotation) | peak BRDF: point / footprint-averaged truth / extracted (1/sr) | footprint-only fit: "
-             "rho_s, alpha_x, alpha_y, rotation | pipeline fit: the same |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "and rotation) | peak BRDF: point / footprint-averaged truth / extracted (1/sr) | footprint-only fit "
+             "(point model): rho_s, alpha_x, alpha_y, rotation | footprint-averaged truth, footprint-aware fit: the "
+             "same | pipeline fit: the same |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
 
 
 def section_footprint(work: Path, rep: dict, ev: dict, runs: list[Path]) -> list[str]:
@@ -222,6 +323,9 @@ def section_footprint(work: Path, rep: dict, ev: dict, runs: list[Path]) -> list
     if not path.exists():
         return ["## Narrow lobes", "", f"(no {path}: run validation/recovery_footprint.py)", ""]
     fps = json.loads(path.read_text())
+    render = next(iter(fps.values()))["render"]
+    rule = next(iter(fps.values())).get("pixel_rule", "midpoint")
+    rule = f" --pixel-rule {rule}" if rule != "midpoint" else ""
     lines = ["## Lobes about as narrow as one sample's footprint", "",
              "Every sample is one 2x2 Bayer block whose R, G, B are read at the block centre by bilinear "
              "interpolation of the CFA planes (core/extraction/extract.py `block_values`), and every pixel integrates its "
@@ -234,9 +338,12 @@ def section_footprint(work: Path, rep: dict, ev: dict, runs: list[Path]) -> list
              "sample's footprint, and fits eq. 4.79 to that noise-free footprint-averaged truth (the "
              "'footprint-only fit': the bias the footprint alone causes). FWHM: full width at half maximum of the "
              "lobe in theta_h, 2 alpha sqrt(ln 2).", "",
-             f"Command: `{FOOTPRINT_CMD.format(work=work, materials=','.join(fps), render=next(iter(fps.values()))['render'])}` "
-             "(render `old`: these captures were rendered before twin/render.py integrated the pixel area, with one "
-             "bilinear read per pixel from a canvas at the output resolution, a further 1-px tent in the kernel).", "",
+             f"Command: `{FOOTPRINT_CMD.format(work=work, materials=','.join(fps), render=render)}{rule}`"
+             + (" (render `old`: these captures were rendered before twin/render.py integrated the pixel area, with "
+                "one bilinear read per pixel from a canvas at the output resolution, a further 1-px tent in the "
+                "kernel)." if render == "old" else " (render `area`: the twin's current renderer, pixel-area "
+                                                  "integration; the kernel is `block_values`' and the pixels' only)."),
+             "",
              *FP_HEADER]
     for m, fp in fps.items():
         fit_err = ev[m]["err"] if m in ev else None
@@ -259,8 +366,9 @@ def section_footprint(work: Path, rep: dict, ev: dict, runs: list[Path]) -> list
                f"width ({fp['kernel_rms_deg']:.2f} deg); {fp['n_inside_half_max']} of the samples lie inside the half "
                f"maximum (median {sl['median']:.0f} per LED and rotation, {sl['empty']} of {sl['slices']} LED-rotation "
                f"slices with none)"
-               + (" - the lobe is narrower than the range one sample spans, so at this scale the rig cannot resolve "
-                  "it" if minor < fp["block_span_deg"]["median"] else "")
+               + (" - the lobe is narrower than the range one sample spans: the point model cannot describe these "
+                  "samples, only a model averaged over the footprint can" if minor < fp["block_span_deg"]["median"]
+                  else "")
                + ". Averaged over the footprint, the truth peaks at "
                f"{100 * fp['peak']['footprint'] / fp['peak']['point']:.0f} % of its point value; the extracted data "
                f"peak at {100 * fp['peak']['observed'] / fp['peak']['point']:.0f} %.")
@@ -268,7 +376,10 @@ def section_footprint(work: Path, rep: dict, ev: dict, runs: list[Path]) -> list
             e = ev[m]["err"]
             txt += (f" Fitting eq. 4.79 to the noise-free footprint-averaged truth gives rho_s {_pct(fo['rho_s'])}, "
                     f"alpha_x {_pct(fo['alpha_x'])}, alpha_y {_pct(fo['alpha_y'])}, rotation "
-                    f"{fo['lobe_rotation_deg']:.2f} deg; the pipeline's fit of the rendered, noisy captures: "
+                    f"{fo['lobe_rotation_deg']:.2f} deg"
+                    + (f"; the footprint-aware fit of the same values: {_four(fp['footprint_model_rel_err'])}"
+                       if fp.get("footprint_model_rel_err") else "")
+                    + "; the pipeline's (footprint-aware) fit of the rendered, noisy captures: "
                     f"{_pct(e['rho_s'])}, {_pct(e['alpha_x'])}, {_pct(e['alpha_y'])}, {e['lobe_rotation_deg']:.2f} deg "
                     f"({'meets' if ev[m]['met'] else 'misses'} the targets).")
         lines.append(txt)
@@ -301,13 +412,21 @@ def section_footprint(work: Path, rep: dict, ev: dict, runs: list[Path]) -> list
                   f"half-maximum width of {fwhm:.2f} deg, {fwhm / span:.1f} times the {span:.2f} deg a Bayer block "
                   f"spans; {n_met} of these {len(rest)} materials meet the targets.", ""]
     lines += section_scale(runs)
-    lines += ["### What would remove it (not done here)", "",
-              "Finer pixels (the predictions and the scale-0.5 run above; the real rig captures at full resolution); "
-              "a fit of the footprint-averaged model (eq. 4.79 averaged over each sample's kernel mapped by its "
-              "Jacobian, which `recovery_footprint.footprint_average` evaluates; it would remove the footprint-only "
-              "fit's bias at the cost of one model evaluation per kernel point near the peak); or an extraction "
-              "that does not interpolate the CFA planes for narrow lobes. On the real rig the LED's finite emitting "
-              "area (a point light in the twin) widens the measured lobe further.", ""]
+    done = [(m, fp) for m, fp in fps.items() if fp.get("footprint_model_rel_err") and m in ev]
+    lines += ["### What the footprint-aware fit leaves", ""]
+    if done:
+        lines += ["The fit now models the footprint (eq. 4.79 averaged over each sample's kernel mapped by its "
+                  "Jacobian, core/fitting/footprint_model.py, `glossrig fit`'s default). On the noise-free "
+                  "footprint-averaged truth (values from `recovery_footprint.footprint_average` with the pixel-area rule "
+                  f"{done[0][1].get('pixel_rule', 'midpoint')}, the fit's own kernel a Gauss-Legendre rule chosen "
+                  "from the lobe's width) it recovers, per material: "
+                  + "; ".join(f"{m} {_four(fp['footprint_model_rel_err'])}" for m, fp in done)
+                  + ". What the pipeline's fit of the captures adds to that (table above) is the captures' noise, the "
+                  "render's Monte Carlo sampling of each pixel's area and the calibration's errors, not the "
+                  "footprint.", ""]
+    lines += ["Not modelled on the twin: the LED's finite emitting area (a point light in the twin; on the real "
+              "rig 0.75 mm at 300 mm, counted in the uncertainty budget's footprint component) and lens blur "
+              "(none in the twin).", ""]
     return lines
 
 
@@ -387,35 +506,45 @@ def main() -> None:
     else:
         rep = pipeline_study.main(["--out", a.work, "--scale", str(a.scale), "--materials", a.materials,
                                    "--rotations=-45,0,45,90", "--fit"])
+        point_fits(work, rep)
     runs = [Path(r) for r in a.scale_runs.split(",") if r]
     ev = evaluate(work, rep)
     fps = json.loads((work / "footprint.json").read_text()) if (work / "footprint.json").exists() else {}
     causes = {m: "lobe about as narrow as the sample footprint (below)" for m in fps}
     done = len(ev)
     met = sum(r["met"] for r in ev.values())
-    text = ["# Ground-truth recovery on the twin (issue 4)", "",
-            f"Commands: `python -m validation.recovery_study --work {a.work} --scale {rep['scale']}` (the study; "
+    run = list(rep["materials"])
+    subset = f" --materials {','.join(run)}" if run != materials() else ""
+    text = ["# Ground-truth recovery on the twin (issues 4 and 15)", "",
+            f"Commands: `python -m validation.recovery_study --work {a.work} --scale {rep['scale']}{subset}` (the study; "
             f"resumable), then `python -m validation.recovery_study --work {a.work} --report-only"
             + (f" --scale-runs {a.scale_runs}" if a.scale_runs else "") + "` (this report; the sections below name "
             "the commands that produce their inputs). Middle-row LEDs, rotations -45/0/45/90, one repeat, thesis LED "
-            "fluctuations and sensor noise, reference lambert:0.8. Luminance fit; errors are fitted / true - 1 "
+            "fluctuations and sensor noise, reference lambert:0.8. Luminance fit of `glossrig fit`'s default model, "
+            "eq. 4.79 averaged over each sample's footprint (core/fitting/footprint_model.py); errors are fitted / "
+            "true - 1 "
             "against the truth in the fit's canonical form (alpha_x >= alpha_y, rotation in [0, pi)), lobe rotation "
             "modulo pi. Targets: rho_d 3 %, rho_s and both alphas 10 %, rotation 3 deg, for parameters the data "
             "resolve.", "",
             f"Calibration: intrinsics {json.dumps({k: round(v, 5) if isinstance(v, float) else v for k, v in rep['intrinsics'].items()})}; "
             f"lamp errors (mm) {json.dumps({k: round(v, 2) for k, v in rep['lamp_error_mm'].items()})}.", "",
-            f"Materials finished: {done} of {len(materials())} in ward_params.csv; targets met on every resolvable "
+            f"Materials finished: {done} of {len(materials())} in ward_params.csv"
+            + (f" (not run: {', '.join(m for m in materials() if m not in ev)})" if done < len(materials()) else "")
+            + "; targets met on every resolvable "
             f"parameter: {met} of {done}"
             + (f" ({', '.join(m for m, r in ev.items() if not r['resolvable']['rho_s'])}: rho_d only, no resolvable lobe)"
                if any(not r["resolvable"]["rho_s"] for r in ev.values()) else "")
             + (f"; missed: {', '.join(m for m, r in ev.items() if not r['met'])}, each explained below by a measured "
                "cause" if met < done else "") + ".", "",
             table(ev, causes), "",
+            *_calibration_note(rep),
             "Parentheses: a parameter the data do not resolve (criterion below), not held to the target. Lobe "
             "contrast / residual: the fitted lobe's largest share of the fitted BRDF over the samples divided by the "
             "fit's median absolute relative residual; the lobe is resolvable when it exceeds 1. The rotation also "
             "needs its standard error below 3 deg.", "",
-            *section_canonical(rep, ev), *section_no_lobe(work, rep, ev), *section_footprint(work, rep, ev, runs)]
+            *section_point_vs_footprint(work, ev, list(fps)), *section_canonical(rep, ev),
+            *section_no_lobe(work, rep, ev), *section_footprint(work, rep, ev, runs),
+            *section_before(HERE / "recovery_before_footprint.md")]
     Path(a.out).write_text("\n".join(text))
     print("\n".join(text))
 
