@@ -13,13 +13,14 @@ worker count.
 """
 from __future__ import annotations
 
+import functools
 import os
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any
 
-__all__ = ["usable_cores", "resolve_workers", "process_pool", "ordered_results", "single_threaded",
+__all__ = ["usable_cores", "resolve_workers", "WorkerPool", "process_pool", "ordered_results", "single_threaded",
            "release_memory"]
 
 
@@ -58,31 +59,46 @@ def single_threaded() -> None:
     cv2.setNumThreads(1)
 
 
-def release_memory() -> None:
-    """Give the heap's free memory back to the system (glibc ``malloc_trim``; nothing
-    elsewhere): a worker that has just freed a large job's arrays would otherwise keep
-    them resident, fragmented, while it runs the next."""
+@functools.lru_cache(maxsize=1)
+def _malloc_trim() -> Callable[[int], Any] | None:
+    """glibc's ``malloc_trim``, looked up once per process (None elsewhere)."""
     import ctypes
     import ctypes.util
 
     name = ctypes.util.find_library("c")
     try:
         libc = ctypes.CDLL(name) if name else None
-        if libc is not None and hasattr(libc, "malloc_trim"):
-            libc.malloc_trim(0)
     except OSError:
-        pass
+        return None
+    return getattr(libc, "malloc_trim", None)
 
 
-def process_pool(workers: int) -> ProcessPoolExecutor:
+def release_memory() -> None:
+    """Give the heap's free memory back to the system (glibc ``malloc_trim``; nothing
+    elsewhere): a worker that has just freed a large job's arrays would otherwise keep
+    them resident, fragmented, while it runs the next."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+class WorkerPool(ProcessPoolExecutor):
+    """A process pool that knows its number of ``workers`` (:func:`ordered_results` sizes
+    its window by it)."""
+
+    def __init__(self, workers: int, **kwargs):
+        super().__init__(max_workers=workers, **kwargs)
+        self.workers = workers
+
+
+def process_pool(workers: int) -> WorkerPool:
     """A pool of ``workers`` single-threaded (:func:`single_threaded`) spawned processes."""
     import multiprocessing
 
-    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=single_threaded)
+    return WorkerPool(workers, mp_context=multiprocessing.get_context("spawn"), initializer=single_threaded)
 
 
-def ordered_results(pool: Executor | None, fn: Callable[..., Any], jobs: Iterable[tuple],
+def ordered_results(pool: WorkerPool | None, fn: Callable[..., Any], jobs: Iterable[tuple],
                     ahead: int = 1, window: int | None = None) -> Iterator[Any]:
     """``fn(*job)`` for every job, yielded in job order. With a ``pool`` at most its
     worker count + ``ahead`` jobs (or ``window``, when given: 1 runs one job at a time,
@@ -94,7 +110,7 @@ def ordered_results(pool: Executor | None, fn: Callable[..., Any], jobs: Iterabl
         for job in jobs:
             yield fn(*job)
         return
-    limit = max(1, window) if window is not None else getattr(pool, "_max_workers", 1) + max(0, ahead)
+    limit = max(1, window) if window is not None else pool.workers + max(0, ahead)
     pending: deque[Future] = deque()
     it = iter(jobs)
     try:

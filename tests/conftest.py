@@ -221,14 +221,20 @@ TINY_SIM = ("--rig", RIG, "--repeats", 1, "--scale", 0.12, "--spp", 1, "--rotati
             "--no-progress")
 
 
-def _make_tiny_captures(d: Path) -> None:
+def make_twin_captures(d: Path, sim=TINY_SIM, leds=("9",)) -> None:
+    """A lambert:0.8 reference (``ref/``, seed 6) and a sample_2_6 sample (``sample/``, seed 7)
+    simulated with ``sim``, with ``camera.json`` and ``lamps.json`` (``leds``) from the truth."""
     import json
 
-    glossrig_cli("simulate", *TINY_SIM, "--material", "lambert:0.8", "--seed", 6, "--out", d / "ref")
-    glossrig_cli("simulate", *TINY_SIM, "--material", "sample_2_6", "--seed", 7, "--out", d / "sample")
+    glossrig_cli("simulate", *sim, "--material", "lambert:0.8", "--seed", 6, "--out", d / "ref")
+    glossrig_cli("simulate", *sim, "--material", "sample_2_6", "--seed", 7, "--out", d / "sample")
     t = json.loads((d / "sample" / "truth.json").read_text())
     (d / "camera.json").write_text(json.dumps(camera_json_from_truth(t)))
-    (d / "lamps.json").write_text(json.dumps(lamps_json_from_truth(t)))
+    (d / "lamps.json").write_text(json.dumps(lamps_json_from_truth(t, leds=leds)))
+
+
+def _make_tiny_captures(d: Path) -> None:
+    make_twin_captures(d)
 
 
 @pytest.fixture(scope="session")

@@ -8,14 +8,13 @@ reference at scale 0.12, one rotation, 1 spp; camera and lamps from the twin's t
 from __future__ import annotations
 
 import hashlib
-import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import RIG, camera_json_from_truth, glossrig_cli, lamps_json_from_truth, run_shared_folder
+from conftest import RIG, make_twin_captures, run_shared_folder
 from glossrig.core.calibration.raw import even_crop, linearize_mean, linearize_mosaic, read_raw
 from glossrig.core.errors import InputError
 from glossrig.core.radiometry.hdr import combine_repeats
@@ -24,17 +23,12 @@ SIM = ("--rig", RIG, "--repeats", 2, "--scale", 0.12, "--spp", 1, "--rotations",
        "--no-progress")
 
 
-CAPTURES = {"ref": ("lambert:0.8", 6), "sample": ("sample_2_6", 7)}       # folder: (material, seed)
+CAPTURES = {"ref": ("lambert:0.8", 6), "sample": ("sample_2_6", 7)}       # folder: (material, seed), as conftest's
 
 
 def _make(d: Path) -> None:
     """conftest's tiny captures with two LEDs and two repeats (camera and lamps from the truth)."""
-    for folder, (material, seed) in CAPTURES.items():
-        glossrig_cli("simulate", *SIM, "--material", material, "--seed", seed, "--out", d / folder)
-    truth = json.loads((d / "sample" / "truth.json").read_text())
-    for name, doc in (("camera.json", camera_json_from_truth(truth)),
-                      ("lamps.json", lamps_json_from_truth(truth, leds=("9", "10")))):
-        (d / name).write_text(json.dumps(doc))
+    make_twin_captures(d, SIM, leds=("9", "10"))
 
 
 @pytest.fixture(scope="module")
@@ -145,6 +139,31 @@ def test_a_plain_dng_crop_is_read_as_libraw_decodes_it(caps):
         np.testing.assert_array_equal(fast.black, full.black)
         np.testing.assert_array_equal(fast.cfa, full.cfa)
         assert fast.white == full.white
+
+
+@pytest.mark.mitsuba
+def test_reading_a_checked_raw_leaves_no_buffer_of_its_bytes_to_the_garbage_collector(caps):
+    """read_raw with a checksum parses the file's bytes through an in-memory buffer; tifffile
+    keeps it in reference cycles that only a garbage collection frees, which held ~33 MB per
+    48 MB full-resolution DNG until one ran (issue 19: a worker's memory). The buffer is closed
+    (its bytes let go) before read_raw returns."""
+    import gc
+    import io
+
+    def open_buffers() -> set[int]:
+        return {id(o) for o in gc.get_objects() if isinstance(o, io.BytesIO) and not o.closed}
+
+    f = sorted((caps / "sample").glob("*.dng"))[0]
+    digest = hashlib.sha256(f.read_bytes()).hexdigest()
+    gc.collect()
+    gc.disable()                   # keep whatever cycles the read leaves
+    try:
+        before = open_buffers()
+        frame = read_raw(f, crop=(0, 0, 8, 8), sha256=digest)
+        left = open_buffers() - before
+    finally:
+        gc.enable()
+    assert frame.mosaic.shape == (8, 8) and left == set()
 
 
 def test_linearize_mean_is_the_correctly_rounded_mean_of_the_linearised_repeats():

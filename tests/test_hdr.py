@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 from glossrig.core.calibration.demosaic import channel_index
 from glossrig.core.errors import InputError
-from glossrig.core.radiometry.hdr import (TOO_BRIGHT, TOO_DARK, TOO_FEW, VALID, NoiseModel, combine_repeats, hdr_from_stack,
-                               hdr_ml, hdr_thesis, neighbour_correct, stack_frames)
+from glossrig.core.radiometry.hdr import (HI, LO, NEIGHBOUR_WINDOW, TOO_BRIGHT, TOO_DARK, TOO_FEW, VALID, NoiseModel,
+                               combine_repeats, hdr_from_stack, hdr_ml, hdr_thesis, neighbour_correct, stack_frames,
+                               stream_stack)
 from glossrig.core.radiometry.patch import normalise_by_patch
 from glossrig.core.calibration.raw import RawFrame, linearize_mosaic
 from glossrig.twin.sensor import SensorModel, frame_rng
@@ -122,11 +124,12 @@ def test_printed_eq_4_36_squares_the_jitter_and_the_fixed_factor_removes_it(time
     assert after_printed > 1.5 * before
 
 
-def chain_sigma(rep, k: int, e_white: float, repeats: int, lo: float = 0.1) -> float:
+def chain_sigma(rep, k: int, e_white: float, repeats: int, lo: float = NEIGHBOUR_WINDOW[0]) -> float:
     """Standard error of image k's correction factor from the shot noise of its chain.
 
     Each link's ratio uses ``rep.pixels`` pixels whose values lie above ``lo`` of the white
-    level: a pixel's relative shot noise is at most 1 / sqrt(lo e_white repeats) (the
+    level (``lo``: neighbour_correct's window, NEIGHBOUR_WINDOW): a pixel's relative shot
+    noise is at most 1 / sqrt(lo e_white repeats) (the
     repeats are averaged), a ratio of two such pixels has sqrt(2) times that, and a
     median-type estimator costs a factor ~1.25 (its efficiency for normal errors) over
     the mean: sigma_link <= 1.25 sqrt(2) / sqrt(lo e_white repeats pixels). The links from
@@ -152,12 +155,13 @@ def test_neighbour_correction_removes_led_jitter_on_twin_data(sensor, rig, times
     after = np.abs(gbar[done] * rep.factor[done] / gbar[ref] - 1)
     # what is left is the ratio estimates' own shot noise: each image within 4 of its
     # chain's standard errors, and the mean square within chi-square's 99.9th percentile
-    # (16 dof: 2.45 per image); the uncorrected jitter is far outside that bound
+    # (one dof per corrected image: 2.45 for 16); the uncorrected jitter is far outside that bound
     e_white = (sensor.white_level - float(np.mean(sensor.black_2x2()))) / sensor.conversion_gain(rig.sequence_iso)
     sig = np.array([chain_sigma(rep, k, e_white, repeats=lin.shape[0]) for k in done])
+    bound = chi2.ppf(0.999, len(done)) / len(done)
     assert np.all(after < 4 * sig), (after / sig).round(2)
-    assert np.mean((after / sig) ** 2) < 2.45
-    assert np.mean((before / sig) ** 2) > 2 * 2.45
+    assert np.mean((after / sig) ** 2) < bound
+    assert np.mean((before / sig) ** 2) > 2 * bound
 
 
 def naive_median_chain(y, t, lo=0.1, hi=0.9):
@@ -396,6 +400,126 @@ def test_stack_frames_rejects_repeats_that_disagree(sensor, rig, times):
         stack_frames(bad, reps)
     with pytest.raises(InputError, match="repeat indices"):
         stack_frames(frames, reps[:-1])
+
+
+def _counting_reader(frames):
+    """``read(i)`` for :func:`stream_stack` returning a copy of ``frames[i]``, and the largest
+    number of frames it handed out whose pixels were still held (not released) at a read."""
+    import dataclasses
+
+    live, peak = [], [0]
+
+    def read(i):
+        f = dataclasses.replace(frames[i], mosaic=frames[i].mosaic.copy())
+        live.append(f)
+        peak[0] = max(peak[0], sum(g.mosaic.size > 0 for g in live))
+        return f
+    return read, peak
+
+
+def test_stream_stack_equals_stack_frames_holding_two_exposures_at_most(sensor, rig, times):
+    frames, reps, _ = sequence_frames(sensor, rig, times)
+    whole = stack_frames(frames, reps)
+    order = np.random.default_rng(3).permutation(len(frames))
+    fr, rp = [frames[i] for i in order], [reps[i] for i in order]
+    for prefetch in (True, False):
+        read, peak = _counting_reader(fr)
+        st = stream_stack(read, [f.exposure_s for f in fr], [f.path for f in fr], rp, prefetch=prefetch)
+        np.testing.assert_array_equal(st.images, whole.images)
+        np.testing.assert_array_equal(st.clipped, whole.clipped)
+        np.testing.assert_array_equal(st.exposure_s, whole.exposure_s)
+        assert st.files == whole.files and st.repeats == 2
+        # one exposure's 2 repeats combined while the next one's are read (prefetch), never the sequence
+        assert peak[0] <= (4 if prefetch else 2) < len(frames)
+
+
+def test_stream_stack_checks_the_files_as_they_are_read(sensor, rig, times):
+    import dataclasses
+
+    frames, reps, _ = sequence_frames(sensor, rig, times, shape=(4, 4))
+    k = times.size + 6                         # repeat 1, exposure 6: its file says 1 % longer
+    odd = list(frames)
+    odd[k] = dataclasses.replace(frames[k], path="odd.dng", exposure_s=float(times[6]) * 1.01)
+    with pytest.raises(InputError, match=r"odd\.dng: exposure 0\.016766 s in the file does not match 0\.0166 s of "
+                                         r"seq_rep0_e06\.dng \(repeat 0\)"):
+        stream_stack(_counting_reader(odd)[0], [f.exposure_s for f in frames], [f.path for f in frames], reps)
+    iso = list(frames)
+    iso[k] = dataclasses.replace(frames[k], path="iso.dng", iso=640)
+    with pytest.raises(InputError, match=r"iso\.dng: ISO 640"):
+        stream_stack(_counting_reader(iso)[0], [f.exposure_s for f in frames], [f.path for f in frames], reps)
+    # the grouping's checks come first, from the expected exposures, before any file is read
+    with pytest.raises(InputError, match=r"seq_rep0_e03\.dng: repeat 1 lacks exposure"):
+        stream_stack(lambda i: pytest.fail("read before the grouping was checked"),
+                     [f.exposure_s for f in frames[:times.size + 3]], [f.path for f in frames[:times.size + 3]],
+                     reps[:times.size + 3])
+
+
+def test_neighbour_correct_in_place_equals_the_copy(sensor, rig, times):
+    rates = log_rates((48, 64), -2.5, 2.6, 5)
+    gains = 1 + np.random.default_rng(6).normal(0, 0.005, (2, times.size))
+    lin, _ = twin_sequence(sensor, rates, times, rig.sequence_iso, rig.sequence_aperture, repeats=2, gains=gains)
+    comb, clipped = combine_repeats(lin)
+    copied, rep_c = neighbour_correct(comb, times, clipped=clipped)
+    inplace, rep_i = neighbour_correct(comb, times, clipped=clipped, copy=False)
+    assert inplace is comb and copied is not comb
+    np.testing.assert_array_equal(inplace, copied)
+    np.testing.assert_array_equal(rep_i.factor, rep_c.factor)
+
+
+@pytest.mark.parametrize("bound", [0.1, 0.9, 0.002])
+@pytest.mark.parametrize("ratio", [2.0, 0.5, 1 / 3, 0.062437, 31.3])
+def test_scaled_window_bound_selects_exactly_the_pixels_the_product_does(bound, ratio):
+    """neighbour_correct tests q's value against one interval instead of scaling it to a's
+    and b's exposures: the same pixels, for every float32 value near the bound."""
+    from glossrig.core.radiometry.hdr import _scaled_bound
+
+    c = np.float32(ratio)
+    centre = np.float32(bound / ratio)
+    x = centre + np.arange(-2000, 2001, dtype=np.float32) * np.spacing(centre)      # every float32 nearby
+    x = np.unique(np.concatenate([x, np.nextafter(x, np.float32(np.inf))]))
+    for above in (True, False):
+        g = _scaled_bound(c, bound, above)
+        want = (x * c > bound) if above else (x * c < bound)
+        got = (x > g) if above else (x < g)
+        np.testing.assert_array_equal(got, want)
+
+
+def _hdr_ml_float64(y, t, noise, m, iterations=50):
+    """hdr_ml's estimator in float64, iterated to convergence (the reference of the float32 code)."""
+    y = y.reshape(len(t), -1).astype(np.float64)
+    tt = t[:, None]
+    usable = y < 1
+    v = usable & (y > LO) & (y < HI)
+    r = (y * v).sum(0) / (tt * v).sum(0)
+    for _ in range(iterations):
+        e = r * tt
+        valid = usable & (e >= LO) & (e <= HI)
+        w = np.where(valid, 1 / ((e / noise.electrons_full_scale + noise.read_sigma ** 2) / m), 0)
+        sw = (w * tt * tt).sum(0)
+        r = (w * tt * y).sum(0) / sw
+    return r, 1 / sw, r * tt
+
+
+def test_hdr_ml_in_float32_agrees_with_float64_within_its_error_budget(sensor, rig, times, noise):
+    """hdr_ml's docstring budget: sums of n positive float32 terms (relative error <= (n-1) 2^-24
+    each; the rate is a ratio of two, its variance the inverse of one whose weights move with
+    the rate), float32 exposure times (2^-24) and the 1e-6 stopping rule. Pixels whose r t_i
+    lies within 1e-5 of a validity limit may take or drop that exposure: left out."""
+    rates = log_rates((64, 96), -2.5, 2.6, 11)
+    lin, _ = twin_sequence(sensor, rates, times, rig.sequence_iso, rig.sequence_aperture)
+    comb, clipped = combine_repeats(lin)
+    comb = np.where(clipped, np.float32(1.0), comb)        # the reference knows saturation from the value
+    res = hdr_ml(comb, times, noise, repeats=lin.shape[0], clipped=clipped)
+    r64, var64, e = _hdr_ml_float64(comb, times, noise, lin.shape[0])
+    near = ((np.abs(e / LO - 1) < 1e-5) | (np.abs(e / HI - 1) < 1e-5)).any(axis=0)
+    ok = np.isfinite(r64) & (r64 > 0) & ~near
+    assert ok.mean() > 0.9
+    u, n = 2.0 ** -24, times.size
+    rate_tol = 2 * (n - 1) * u + 2 * u + 1e-6
+    var_tol = (n - 1) * u + u + rate_tol
+    np.testing.assert_allclose(res.rate.ravel()[ok], r64[ok], rtol=rate_tol, atol=0)
+    np.testing.assert_allclose(res.variance.ravel()[ok], var64[ok], rtol=var_tol, atol=0)
+    assert res.rate.dtype == res.variance.dtype == np.float32
 
 
 # ------------------------------------------------------------------ eq. 4.45-4.50

@@ -91,7 +91,7 @@ STAGES = [  # (label, module, attribute); nested ones are subtracted from their 
     ("geometry", "glossrig.core.extraction.extract", "rotation_geometry"),
     ("poses", "glossrig.core.calibration.poses", "calibrate_capture"),
     ("raw_read", "glossrig.core.calibration.raw", "read_raw"),     # via Manifest.read_raw (checksum + decode)
-    ("linearise_stack", "glossrig.core.radiometry.hdr", "stack_frames"),
+    ("linearise_stack", "glossrig.core.radiometry.hdr", "stream_stack"),   # reads its frames (raw_read) inside
     ("hdr", "glossrig.core.radiometry.hdr", "hdr_from_stack"),
     ("patch_blocks", "glossrig.core.extraction.extract", "normalise_by_patch"),
     ("patch_blocks", "glossrig.core.extraction.extract", "block_values"),
@@ -267,9 +267,15 @@ def differences(a_path: Path, b_path: Path) -> dict:
     import pandas as pd
 
     a, b = pd.read_parquet(a_path), pd.read_parquet(b_path)
-    if list(a.columns) != list(b.columns) or len(a) != len(b):
-        return {"same_rows": False, "rows": [len(a), len(b)]}
     out: dict = {"same_rows": True, "rows": len(a), "columns": {}}
+    if list(a.columns) != list(b.columns):
+        return {"same_rows": False, "rows": [len(a), len(b)]}
+    if len(a) != len(b):            # compare the rows both have (a sample row is its block, LED and rotation)
+        keys = ["u", "v", "led", "rotation"]
+        m = a.merge(b, on=keys, suffixes=("", " (b)"))         # a suffix no column name ends with
+        out = {"same_rows": False, "rows": [len(a), len(b)], "common_rows": len(m), "columns": {}}
+        other = [c for c in a.columns if c not in keys]
+        a, b = m[list(a.columns)], m[keys + [f"{c} (b)" for c in other]].set_axis(keys + other, axis=1)[list(a.columns)]
     for c in a.columns:
         x, y = a[c].to_numpy(), b[c].to_numpy()
         if x.dtype.kind != "f":
@@ -323,14 +329,16 @@ def compare_section(res: dict, a) -> str:
     new, one, old, fl = res[f"workers{n}"], res["workers1"], res["baseline"], res["floor"]
 
     def worst(d: dict, cols=None) -> str:
-        if not d.get("same_rows"):
+        if not d.get("same_rows") and "common_rows" not in d:
             return f"rows differ ({d.get('rows')})"
+        rows = ("" if d.get("same_rows") else
+                f"rows differ ({d['rows'][0]} against {d['rows'][1]}), on the {d['common_rows']} rows both have: ")
         items = [(c, v) for c, v in d["columns"].items() if "max_rel" in v and (cols is None or c in cols)]
         c, v = max(items, key=lambda cv: cv[1]["max_rel"])
         nan = sum(v2.get("nan_mismatch", 0) for _, v2 in items)
         over = sum(v2.get("over_1e-6", 0) for _, v2 in items)
         neq = [c2 for c2, v2 in d["columns"].items() if v2.get("equal") is False]
-        return (f"largest relative difference {v['max_rel']:.3g} (column {c}); {over} values differ by more than "
+        return (f"{rows}largest relative difference {v['max_rel']:.3g} (column {c}); {over} values differ by more than "
                 f"1e-6 relative; {nan} NaN mismatches; integer columns "
                 + ("all equal" if not neq else f"differ: {', '.join(neq)}"))
 

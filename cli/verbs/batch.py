@@ -66,17 +66,15 @@ def run(args) -> int:
     log = logging.getLogger(__name__)
     if args.force and args.resume:
         raise InputError("--resume continues the jobs in --out, --force redoes them: give one of them")
-    if args.workers < 0:
-        raise InputError(f"--workers must be >= 0, got {args.workers}")
-    out = prepare_output(args.out, args.force, kind="folder", resume=args.resume,
-                         hint="use --resume to continue it (finished steps whose inputs match are reused) "
-                              "or --force to redo every job")
-    jobs = read_jobs(args.jobs)
-    out = out.resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    runner = make_runner(args.scheduler, args.workers)
-    log.info(f"{len(jobs)} job(s) on {runner.name}")
+    runner = make_runner(args.scheduler, args.workers)        # checks --workers, before anything is written
     try:
+        out = prepare_output(args.out, args.force, kind="folder", resume=args.resume,
+                             hint="use --resume to continue it (finished steps whose inputs match are reused) "
+                                  "or --force to redo every job")
+        jobs = read_jobs(args.jobs)
+        out = out.resolve()
+        out.mkdir(parents=True, exist_ok=True)
+        log.info(f"{len(jobs)} job(s) on {runner.name}")
         shared = BatchRun(out, args.resume, extract_workers=None if isinstance(runner, LocalRunner) else 1)
         results = runner.map(run_job, jobs, shared=shared, desc="batch", progress=not args.no_progress, unit="job")
     finally:

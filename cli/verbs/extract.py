@@ -77,16 +77,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true")
 
 
-def _provenance(args) -> dict:
+def _provenance(args, sample, reference) -> dict:
     """What the table was made from (stored in its Parquet schema metadata): both
-    captures (by their manifests), the rig files they name, the camera and lamp
-    calibrations, the options that change the values, the version and source revision."""
-    from glossrig.core.capture import load_manifest
+    captures (by their manifests, ``sample`` and ``reference``), the rig files they name,
+    the camera and lamp calibrations, the options that change the values, the version and
+    source revision."""
     from glossrig.core.provenance import provenance
 
     return provenance({"sample": args.sample_dir, "reference": args.reference,
-                       "sample_rig": load_manifest(args.sample_dir).rig_path(),
-                       "reference_rig": load_manifest(args.reference).rig_path(),
+                       "sample_rig": sample.rig_path(), "reference_rig": reference.rig_path(),
                        "camera": args.camera, "lamps": args.lamps},
                       {"reference_albedo": args.reference_albedo, "estimator": args.estimator},
                       tool="glossrig extract")
@@ -95,6 +94,7 @@ def _provenance(args) -> dict:
 def run(args) -> int:
     from pathlib import Path
 
+    from glossrig.core.capture import load_manifest
     from glossrig.core.checkpoint import WorkStore, work_folder_for
     from glossrig.core.extraction.extract import check_compatible, extract_samples, measurement_fingerprint
     from glossrig.core.calibration.intrinsics import load_camera
@@ -106,8 +106,6 @@ def run(args) -> int:
     idle = getattr(args, "idle_timeout", None)
     if idle is not None and not follow:
         raise InputError("--idle-timeout applies to --follow only")
-    if idle is not None and not idle > 0:
-        raise InputError(f"--idle-timeout must be > 0 seconds, got {idle}")
     prepare_output(args.out, args.force, resume=resume)
     if args.plots:
         prepare_output(args.plots, args.force, kind="folder", resume=resume)
@@ -121,15 +119,17 @@ def run(args) -> int:
                                     idle_timeout_s=IDLE_TIMEOUT_S if idle is None else idle,
                                     progress=not args.no_progress, plots=args.plots,
                                     workers=getattr(args, "workers", None))
+        ms, mr = load_manifest(args.sample_dir), load_manifest(args.reference)       # the finished captures'
     else:
-        check_compatible(args.sample_dir, args.reference)
+        ms, mr = load_manifest(args.sample_dir), load_manifest(args.reference)       # read once, passed on
+        check_compatible(ms, mr)
         # the stored units are measurements: the albedo (applied after them) is not among their inputs
-        fp = measurement_fingerprint(args.sample_dir, args.reference, cam, lamps, estimator=args.estimator)
+        fp = measurement_fingerprint(ms, mr, cam, lamps, estimator=args.estimator)
         stores = [WorkStore(work_folder_for(args.out), fp, resume=resume)]
-        df = extract_samples(args.sample_dir, args.reference, cam, lamps, albedo=args.reference_albedo,
+        df = extract_samples(ms, mr, cam, lamps, albedo=args.reference_albedo,
                              estimator=args.estimator, progress=not args.no_progress, plots=args.plots,
                              store=stores[0], workers=getattr(args, "workers", None))
-    write_samples(df, Path(args.out), provenance=_provenance(args))
+    write_samples(df, Path(args.out), provenance=_provenance(args, ms, mr))
     for store in stores:
         store.remove()
     print(f"{len(df)} BRDF samples written to {args.out}")

@@ -237,8 +237,12 @@ def _tiff_info(path: Path, data: bytes | None = None
     ``data``: the file's bytes when the caller has already read them."""
     size = path.stat().st_size if data is None else len(data)
     layout = None
+    # tifffile's pages keep their file handle in reference cycles, which only the garbage
+    # collector frees: the buffer over ``data`` is closed here so the file's bytes are not
+    # kept alive with them (measured: ~33 MB per file otherwise, until a collection)
+    src = path if data is None else io.BytesIO(data)
     try:
-        with tifffile.TiffFile(path if data is None else io.BytesIO(data)) as tf:
+        with tifffile.TiffFile(src) as tf:
             tags = _exif_lookup(tf.pages[0])
             # Truncation check: every strip/tile of every IFD (and SubIFD) must
             # lie inside the file. LibRaw notices too, but says only "I/O error".
@@ -260,6 +264,9 @@ def _tiff_info(path: Path, data: bytes | None = None
         return ExifInfo(), None, f"corrupt TIFF structure ({e})", None
     except (ValueError, TypeError, IndexError, KeyError, OSError, struct_error) as e:
         return ExifInfo(), None, f"unreadable TIFF structure ({type(e).__name__}: {e})", None
+    finally:
+        if isinstance(src, io.BytesIO):
+            src.close()
     iso = tags.get(TAG_ISO)
     if isinstance(iso, (tuple, list)):
         iso = iso[0] if iso else None
@@ -514,25 +521,29 @@ def linearize_mean(mosaics, black, white: float) -> tuple[np.ndarray, np.ndarray
     exact = (all(x.dtype in (np.uint8, np.uint16) for x in mos) and np.all(b == np.round(b)) and wl.is_integer()
              and 0 <= float(b.min()) and m * wl < 2 ** 24)
     if not exact:
-        acc = np.zeros(shape, np.float64)
-        sat = np.zeros(shape, bool)
-        for x in mos:
-            lin = linearize_mosaic(x, black, white)
-            acc += lin
-            sat |= lin >= 1.0
-        return (acc / m).astype(np.float32), sat
-    h, w = shape
-    lo = np.tile(b.astype(np.int64), (-(-h // 2), -(-w // 2)))[:h, :w]
+        from glossrig.core.radiometry.hdr import combine_repeats
+
+        comb, sat = combine_repeats(np.stack([linearize_mosaic(x, black, white) for x in mos])[:, None])
+        return comb[0], sat[0]
+    bi = b.astype(np.int64)
+    uniform = bool(np.all(bi == bi[0, 0]))       # one black level: scalar bounds on the whole mosaic
     total = np.zeros(shape, np.uint32)
     sat = np.zeros(shape, bool)
+    lo_full = None
     for x in mos:
-        top = x.dtype.type(min(int(wl), int(np.iinfo(x.dtype).max)))
-        np.add(total, np.clip(x, lo.astype(x.dtype), top), out=total)
+        top = min(int(wl), int(np.iinfo(x.dtype).max))
+        if uniform:
+            np.add(total, np.clip(x, x.dtype.type(bi[0, 0]), x.dtype.type(top)), out=total)
+        else:
+            if lo_full is None or lo_full.dtype != x.dtype:
+                lo_full = np.tile(bi.astype(x.dtype), (-(-shape[0] // 2), -(-shape[1] // 2)))[:shape[0], :shape[1]]
+            np.add(total, np.clip(x, lo_full, x.dtype.type(top)), out=total)
         if wl <= np.iinfo(x.dtype).max:             # else no value of this type reaches the white level
             sat |= x >= top
-    off = (m * lo).astype(np.float32)
-    scale = (m * (wl - lo)).astype(np.float32)
     out = total.astype(np.float32)
-    out -= off
-    out /= scale
+    # (sum - m LI^b) / (m (LI^s - LI^b)) per CFA position (all at once for one level), in float32
+    for i, j in [(0, 0)] if uniform else [(0, 0), (0, 1), (1, 0), (1, 1)]:
+        plane = out if uniform else out[i::2, j::2]
+        plane -= np.float32(m * bi[i, j])
+        plane /= np.float32(m * (wl - bi[i, j]))
     return out, sat

@@ -74,7 +74,8 @@ class SurfaceSamples:
 
 def surface_samples(K, dist, size: tuple[int, int], R_world_cam, t_world_cam, R_cyl_world, t_cyl_world,
                     radius: float, height: float, roi: tuple[int, int, int, int] | None = None,
-                    pixels: tuple[np.ndarray, np.ndarray] | None = None) -> SurfaceSamples:
+                    pixels: tuple[np.ndarray, np.ndarray] | None = None,
+                    footprint_half_px: float | None = None) -> SurfaceSamples:
     """Intersect pixel rays with the sample (thesis eq. 4.26-4.30, corrected).
 
     Poses are OpenCV-style: ``x_cam = R_world_cam @ x_world + t_world_cam`` and
@@ -83,6 +84,14 @@ def surface_samples(K, dist, size: tuple[int, int], R_world_cam, t_world_cam, R_
     is cast; ``pixels = (u, v)`` casts rays through those (sub-pixel) positions
     instead, e.g. the centres of 2x2 Bayer blocks. ``u, v`` of the result keep
     the dtype of the input positions.
+
+    ``footprint_half_px = h`` keeps a position only when the rays through the four corners
+    of its footprint, ``(u +- h, v +- h)``, meet the sample too: a 2x2 Bayer block
+    (``h = 1``) whose centre ray hits the sample but that straddles the cylinder's
+    silhouette or the sample's upper or lower edge mixes sample and background in its
+    four pixels. The thesis keeps a block by its centre ray alone (4.3.2); on the twin
+    those straddling blocks' diffuse values were 3-88 % off (scale 0.1, the outermost
+    block column on either side; validation/uncertainty_coverage.md, section 3).
     """
     if pixels is None:
         w, h = size
@@ -91,15 +100,23 @@ def surface_samples(K, dist, size: tuple[int, int], R_world_cam, t_world_cam, R_
         u, v = uu.ravel(), vv.ravel()
     else:
         u, v = (np.asarray(a).ravel() for a in pixels)
-    d_cam = undistorted_rays(K, dist, u.astype(np.float64), v.astype(np.float64))
     Rwc = np.asarray(R_world_cam, float)
     C_world = -Rwc.T @ np.asarray(t_world_cam, float)
-    d_world = d_cam @ Rwc                          # R^T d for each row
     Rcw = np.asarray(R_cyl_world, float)
     tcw = np.asarray(t_cyl_world, float)
     o_cyl = Rcw.T @ (C_world - tcw)
-    d_cyl = d_world @ Rcw
-    p_cyl, valid = intersect_cylinder(o_cyl, d_cyl, radius, -height / 2, height / 2)
+
+    def cast(uu: np.ndarray, vv: np.ndarray):
+        d_cyl = (undistorted_rays(K, dist, uu, vv) @ Rwc) @ Rcw      # R^T d per row, into the cylinder frame
+        return intersect_cylinder(o_cyl, d_cyl, radius, -height / 2, height / 2)
+
+    uf, vf = u.astype(np.float64), v.astype(np.float64)
+    p_cyl, valid = cast(uf, vf)
+    if footprint_half_px is not None:
+        for du in (-footprint_half_px, footprint_half_px):
+            for dv in (-footprint_half_px, footprint_half_px):
+                idx = np.flatnonzero(valid)
+                valid[idx[~cast(uf[idx] + du, vf[idx] + dv)[1]]] = False
     p_cyl = p_cyl[valid]
     n_cyl = normalize(p_cyl * np.array([1.0, 0.0, 1.0]))
     pts = p_cyl @ Rcw.T + tcw

@@ -28,6 +28,7 @@ angle differences, which wraps phi correctly and has no pole singularity.
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -47,10 +48,13 @@ from glossrig.core.progress import progress_enabled
 from glossrig.core.calibration.markers import holder_marker_corners
 from glossrig.core.calibration.raw import even_crop
 from glossrig.core.rig import Rig, load_rig
-from glossrig.core.samples import CHANNEL_WEIGHT_COLUMNS
+from glossrig.core.samples import CHANNEL_WEIGHT_COLUMNS, COLUMNS
 from glossrig.core.workers import ordered_results, process_pool, release_memory, resolve_workers
 
 PATCH_SHRINK = 0.2        # keep the inner 60 % of the white patch (away from the red frame)
+#: a Bayer block is a sample only when the rays through its footprint's corners, centre
+#: +- this many pixels, meet the sample (the whole 2x2 block; cylinder.surface_samples)
+BLOCK_FOOTPRINT_HALF_PX = 1.0
 
 
 @dataclass
@@ -109,7 +113,7 @@ def rotation_geometry(man: Manifest, rig: Rig, cam: CameraCalibration, rotation:
     u = x0 + 2 * bj.ravel() + 0.5
     v = y0 + 2 * bi.ravel() + 0.5
     surf = surface_samples(K, dist, (w, h), R_hold, t_hold, R_cyl, t_cyl, rig.cylinder_radius, rig.sample_height,
-                           pixels=(u, v))
+                           pixels=(u, v), footprint_half_px=BLOCK_FOOTPRINT_HALF_PX)
     geom = RotationGeometry(rotation, poses["file"], R_hold, t_hold, R_cyl, t_cyl, surf, crop, mask.astype(bool))
     geom.block_index = (((surf.v - 0.5 - y0) / 2).astype(int), ((surf.u - 0.5 - x0) / 2).astype(int))
     return geom
@@ -136,13 +140,14 @@ def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
     seq = [im for im in man.select("sequence", rotation=geom.rotation) if im.leds == [led]]
     if not seq:
         raise InputError(f"no sequence for LED {led} at rotation {geom.rotation:g} deg", path=man.path)
-    frames = [man.read_raw(im, crop=geom.crop) for im in seq]      # checksums checked
-    cfa = frames[0].cfa
-    stack = hdrmod.stack_frames(frames, [im.repeat for im in seq], release=True)
-    del frames
+    # one exposure's frames at a time, read (checksums checked) as they are combined
+    stack = hdrmod.stream_stack(lambda i: man.read_raw(seq[i], crop=geom.crop), [im.exposure_s for im in seq],
+                                [str(man.folder / im.file) for im in seq], [im.repeat for im in seq])
+    cfa = stack.cfa
     release_memory()          # the frames' pages, freed, back to the system before the HDR step
     if estimator == "ml":
-        res = hdrmod.hdr_from_stack(stack, hdrmod.NoiseModel.from_rig(rig, iso=seq[0].iso))
+        ends = stack.ends()   # exposure_to_fix reads the uncorrected ends; the stack is corrected in place
+        res = hdrmod.hdr_from_stack(stack, hdrmod.NoiseModel.from_rig(rig, iso=seq[0].iso), overwrite=True)
         rate, var, status = res.rate, res.variance, res.status
     elif estimator == "thesis":
         images, _ = hdrmod.neighbour_correct(stack.images, stack.exposure_s, clipped=stack.clipped, method="thesis")
@@ -154,9 +159,11 @@ def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
         status = np.where(np.isfinite(rate), hdrmod.VALID,
                           np.where(stack.clipped[0] | (stack.images[0] >= hdrmod.HI), hdrmod.TOO_BRIGHT,
                                    hdrmod.TOO_DARK)).astype(np.uint8)
+        ends = stack
     else:
         raise InputError(f"HDR estimator must be 'ml' or 'thesis', got {estimator!r}")
-    tfix = hdrmod.exposure_to_fix(stack, status)
+    del stack
+    tfix = hdrmod.exposure_to_fix(ends, status)
     norm = normalise_by_patch(rate, geom.patch_mask, cfa, variance=var, name=str(man.folder / seq[0].file))
     assert norm.variance is not None        # a variance went in
     vals, vvar = block_values(norm.image, norm.variance, cfa, geom.block_index)
@@ -217,23 +224,26 @@ def block_status(status: np.ndarray, exposure_to_fix: np.ndarray, cfa, block_ind
     for di in range(2):
         for dj in range(2):
             c = int(cid[di, dj])
-            plane = status[di::2, dj::2]
+            plane = np.ascontiguousarray(status[di::2, dj::2]).ravel()
             tplane = exposure_to_fix[di::2, dj::2]
-            h, w = plane.shape
+            h, w = tplane.shape
+            # per pixel of the plane, once: 1 / t_fix where the pixel has that status and a known t_fix
+            per_code = {}
+            for code in (hdrmod.TOO_DARK, hdrmod.TOO_BRIGHT):
+                known = (status[di::2, dj::2] == code) & ~np.isnan(tplane)
+                with np.errstate(divide="ignore"):
+                    per_code[code] = (np.where(known, 1.0 / np.where(known, tplane, 1.0), 0.0).ravel(), known.ravel())
             for oi in (0, 1):          # the bilinear stencil of the offset (0.5 - di) / 2 (block_values)
-                rows = np.clip(bi - di + oi, 0, h - 1)
+                rows = np.clip(bi - di + oi, 0, h - 1) * w
                 for oj in (0, 1):
-                    cols = np.clip(bj - dj + oj, 0, w - 1)
-                    sv, tv = plane[rows, cols], tplane[rows, cols]
-                    b_, d_ = sv == hdrmod.TOO_BRIGHT, sv == hdrmod.TOO_DARK
-                    bright[:, c] |= b_
-                    dark[:, c] |= d_
+                    at = rows + np.clip(bj - dj + oj, 0, w - 1)
+                    sv = plane[at]
+                    bright[:, c] |= sv == hdrmod.TOO_BRIGHT
+                    dark[:, c] |= sv == hdrmod.TOO_DARK
                     few[:, c] |= sv == hdrmod.TOO_FEW
-                    for code, m in ((hdrmod.TOO_DARK, d_), (hdrmod.TOO_BRIGHT, b_)):
-                        known = m & ~np.isnan(tv)
-                        with np.errstate(divide="ignore"):
-                            inv[code][:, c] += np.where(known, 1.0 / np.where(known, tv, 1.0), 0.0)
-                        cnt[code][:, c] += known
+                    for code, (inv_t, known) in per_code.items():
+                        inv[code][:, c] += inv_t[at]
+                        cnt[code][:, c] += known[at]
     st = np.where(bright, hdrmod.TOO_BRIGHT, np.where(dark, hdrmod.TOO_DARK,
                                                       np.where(few, hdrmod.TOO_FEW, hdrmod.VALID))).astype(np.uint8)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -292,12 +302,19 @@ class _Source:
     prefix: str = ""
 
     def units(self) -> list[tuple[float, int]]:
-        """Its (rotation, LED) units in plan order."""
-        return [(rot, led) for rot in self.man.rotations()
-                for led in sorted({im.leds[0] for im in self.man.select("sequence", rotation=rot)})]
+        """Its (rotation, LED) units in plan order (:func:`capture_units`)."""
+        return capture_units(self.man)
 
     def unit_name(self, rot: float, led: int) -> str:
         return unit_name(self.prefix, rot, led)
+
+
+def capture_units(man: Manifest) -> list[tuple[float, int]]:
+    """The (rotation, LED) units of a capture's sequence images, in plan order (rotations,
+    then LEDs ascending): the order :func:`measure_capture` measures them in and
+    :mod:`glossrig.core.extraction.follow` hands them on in."""
+    return [(rot, led) for rot in man.rotations()
+            for led in sorted({im.leds[0] for im in man.select("sequence", rotation=rot)})]
 
 
 def unit_name(prefix: str, rotation: float, led: int) -> str:
@@ -307,8 +324,14 @@ def unit_name(prefix: str, rotation: float, led: int) -> str:
     return f"{prefix}rot{rotation:g}-led{led}"
 
 
-def _open_source(folder, name: str, what: str, prefix: str) -> _Source:
-    man = load_manifest(folder)
+def _manifest(capture) -> Manifest:
+    """A capture given as its folder or as its already loaded :class:`Manifest` (callers that
+    need it several times load it once and pass it on)."""
+    return capture if isinstance(capture, Manifest) else load_manifest(capture)
+
+
+def _open_source(capture, name: str, what: str, prefix: str) -> _Source:
+    man = _manifest(capture)
     man.require_sequences(what, name)
     if not man.complete:
         raise InputError("capture is not complete (interrupted?): resume it before extracting", path=man.path)
@@ -331,17 +354,37 @@ def _measured_units(pool, sources: list[_Source], order, cam: CameraCalibration,
                     geoms: dict, bar):
     """The table of every (source index, rotation, LED) of ``order`` (:func:`measure_unit`), yielded
     in that order: from ``store`` when it holds the unit, else measured in ``pool`` (None: in this
-    process) and saved to ``store``. The geometries the measured units need are solved first
-    (:func:`_solve_geometries`) and kept in ``geoms``."""
+    process) and saved to ``store``. The geometries the measured units need and ``geoms`` lacks are
+    solved and added to it: in this process first (:func:`_solve_geometries`), or in ``pool`` one
+    at a time (a full-resolution calibration image takes ~2 GB), each next one started as soon as
+    the one before is solved, so that it runs beside the units that need only the ones solved
+    (the wall time of a geometry overlaps a unit's instead of idling the other workers)."""
     def stored(i, rot, led) -> bool:
         return store is not None and store.has(sources[i].unit_name(rot, led))
 
     order = list(order)
     todo = [job for job in order if not stored(*job)]
-    _solve_geometries(pool, sources, cam, [(i, rot) for i, rot, _ in todo], geoms)
-    computed = ordered_results(pool, measure_unit if pool is None else _unit_in_worker,
-                               [(sources[i].man, sources[i].rig, geoms[(i, rot)], rot, led, lamps, estimator)
-                                for i, rot, led in todo])
+    need = [k for k in dict.fromkeys((i, rot) for i, rot, _ in todo) if k not in geoms]
+    if pool is None:
+        _solve_geometries(None, sources, cam, need, geoms)
+        need = []
+
+    def jobs() -> Iterator[tuple]:
+        solving: list = []            # [(key, future)]: the one geometry being solved in the pool
+
+        def start_next() -> None:
+            if need and not solving:
+                i, rot = key = need.pop(0)
+                solving.append((key, pool.submit(_geometry_in_worker, sources[i].man, sources[i].rig, cam, rot)))
+        start_next()
+        for i, rot, led in todo:
+            while (i, rot) not in geoms:
+                key, fut = solving.pop()
+                geoms[key] = fut.result()
+                start_next()
+            yield sources[i].man, sources[i].rig, geoms[(i, rot)], rot, led, lamps, estimator
+
+    computed = ordered_results(pool, measure_unit if pool is None else _unit_in_worker, jobs())
     todo_set = set(todo)
     for i, rot, led in order:
         name = sources[i].unit_name(rot, led)
@@ -506,8 +549,8 @@ def check_compatible(sample_dir, reference_dir, what: str = "extract") -> None:
     """Both captures must hold exposure sequences (not a checkerboard capture given by
     mistake: stopped here, before any image is read); a reference must come from the
     same rig and hold every (LED, rotation) of the sample. ``what``: the verb, for the
-    error message."""
-    s, r = load_manifest(sample_dir), load_manifest(reference_dir)
+    error message. Each capture: its folder or its loaded :class:`Manifest`."""
+    s, r = _manifest(sample_dir), _manifest(reference_dir)
     s.require_sequences(what, "SAMPLE_DIR")
     r.require_sequences(what, "REF_DIR")
     rs, rr = load_rig(s.rig_path()), load_rig(r.rig_path())
@@ -528,20 +571,20 @@ def measurement_fingerprint(sample_dir, reference_dir, cam: CameraCalibration, l
     """What measuring a sample and a reference capture depends on
     (:func:`glossrig.core.checkpoint.fingerprint`): both manifests, the rig files they
     name, the camera calibration file, the lamp positions, ``options`` and any further
-    input ``files`` (name -> path) of the caller's run."""
+    input ``files`` (name -> path) of the caller's run. Each capture: its folder or its
+    loaded :class:`Manifest`."""
     from glossrig.core.checkpoint import fingerprint
 
-    ms, mr = load_manifest(sample_dir), load_manifest(reference_dir)
+    ms, mr = _manifest(sample_dir), _manifest(reference_dir)
     lp = None if lamps is None else {str(k): np.asarray(v, float).tolist() for k, v in sorted(lamps.items())}
     return fingerprint(files={"camera": cam.path or None, "sample_rig": ms.rig_path(), "reference_rig": mr.rig_path(),
                               **(files or {})},
-                       captures={"sample": sample_dir, "reference": reference_dir},
-                       options={**options, "lamps_mm": lp})
+                       captures={"sample": ms.folder, "reference": mr.folder},
+                       options={**options, "lamps_mm": lp, "block_footprint_half_px": BLOCK_FOOTPRINT_HALF_PX})
 
 
 #: the samples table's columns (:mod:`glossrig.core.samples`), in order
-SAMPLE_COLUMNS = (list(ANGLE_COLUMNS) + ["r", "g", "b", "weight", "u", "v", "led", "rotation"]
-                  + list(CHANNEL_WEIGHT_COLUMNS))
+SAMPLE_COLUMNS = list(COLUMNS) + list(CHANNEL_WEIGHT_COLUMNS)
 _PLOT_COLUMNS = ["u", "v", "rotation", "led", "r", "g", "b"]      # what extract_plots reads of the measured sample
 
 
@@ -549,6 +592,7 @@ def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: di
                     albedo: float = 0.8, estimator: str = "ml", progress: bool = False, plots=None,
                     store=None, workers: int | None = None) -> pd.DataFrame:
     """The full extraction: sample and reference measured alike, then divided (eq. 4.78).
+    ``sample_dir``, ``reference_dir``: the captures' folders or their loaded manifests.
 
     ``store``: a :class:`glossrig.core.checkpoint.WorkStore` fingerprinted with
     :func:`measurement_fingerprint` (and the estimator); every finished LED of either
@@ -566,14 +610,15 @@ def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: di
     from glossrig.core.extraction.dynamic_range import dynamic_range_report, log_dynamic_range, merge_reports
 
     _check_albedo(albedo)
-    check_compatible(sample_dir, reference_dir)
-    sources = [_open_source(sample_dir, "SAMPLE_DIR", "extract", "sample-"),
-               _open_source(reference_dir, "REF_DIR", "extract", "reference-")]
+    ms, mr = _manifest(sample_dir), _manifest(reference_dir)        # each read once, here
+    check_compatible(ms, mr)
+    sources = [_open_source(ms, "SAMPLE_DIR", "extract", "sample-"),
+               _open_source(mr, "REF_DIR", "extract", "reference-")]
     s_units = sources[0].units()
     extra = [u for u in sources[1].units() if u not in set(s_units)]
     order = [(i, rot, led) for rot, led in s_units for i in (0, 1)] + [(1, rot, led) for rot, led in extra]
-    exposures = {"sample": _exposures(sample_dir), "reference": _exposures(reference_dir)}
-    bar = tqdm(total=len(order), desc=f"extract {Path(sample_dir).name} + {Path(reference_dir).name}", unit="LED",
+    exposures = {"sample": _exposures(ms), "reference": _exposures(mr)}
+    bar = tqdm(total=len(order), desc=f"extract {ms.folder.name} + {mr.folder.name}", unit="LED",
                disable=not progress_enabled(progress))
     chunks: dict = {}         # (led, rotation) -> that unit's samples
     parts: dict = {}          # (capture, rotation, led) -> its dynamic-range report
@@ -612,6 +657,6 @@ def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: di
     return res
 
 
-def _exposures(folder) -> list[float]:
+def _exposures(man: Manifest) -> list[float]:
     """The exposure times (s) of a capture's sequences, shortest first."""
-    return sorted({float(im.exposure_s) for im in load_manifest(folder).select("sequence")})
+    return sorted({float(im.exposure_s) for im in man.select("sequence")})

@@ -50,8 +50,8 @@ from glossrig.core.capture import MANIFEST, Manifest, load_manifest
 from glossrig.core.checkpoint import WorkStore, work_folder_for
 from glossrig.core.errors import InputError
 from glossrig.core.extraction import extract as ex
-from glossrig.core.extraction.extract import unit_name
-from glossrig.core.rig import load_rig
+from glossrig.core.extraction.extract import capture_units, unit_name
+from glossrig.core.rig import Rig, load_rig
 
 _log = logging.getLogger(__name__)
 
@@ -87,13 +87,6 @@ def planned_units(man: Manifest) -> dict[Unit, set[tuple[int, float]]] | None:
         raise InputError(f"the recorded plan (meta 'plan') is malformed: {e}", path=man.path) from None
 
 
-def capture_units(man: Manifest) -> list[Unit]:
-    """The (rotation, LED) units of a capture's sequence images, in the order
-    :func:`glossrig.core.extraction.extract.measure_capture` measures them."""
-    return [(rot, led) for rot in man.rotations()
-            for led in sorted({im.leds[0] for im in man.select("sequence", rotation=rot)})]
-
-
 def unit_record(man: Manifest, rotation: float, led: int) -> list[dict]:
     """The manifest entries a unit is measured from, in manifest order: the rotation's
     calibration images (:func:`glossrig.core.calibration.poses.calibrate_capture` reads them)
@@ -122,16 +115,22 @@ def _manifest_state(folder: Path) -> tuple[int, int] | None:
 
 
 class _Units:
-    """The follow work store with each unit's record beside it (``NAME-inputs``)."""
+    """The follow work store with each unit's record beside it (``NAME-inputs``), and the
+    records of the units known to be current (measured or checked in this run), so that a
+    manifest change re-examines only the units whose entries changed."""
 
     def __init__(self, store: WorkStore, cam: CameraCalibration, lamps: dict[int, np.ndarray] | None,
                  estimator: str):
         self.store, self.cam, self.lamps, self.estimator = store, cam, lamps, estimator
         self._geoms: dict[tuple[str, float], tuple[str, ex.RotationGeometry]] = {}
+        self._known: dict[str, list[dict]] = {}          # unit name -> the record its stored version has
+        self._rigs: dict[Path, Rig] = {}
 
     def current(self, name: str, record: list[dict]) -> bool:
-        return (self.store.has(name) and self.store.has(name + "-inputs")
-                and self.store.load(name + "-inputs") == record)
+        """Whether the store holds the unit made from ``record``'s entries."""
+        if name not in self._known and self.store.has(name) and self.store.has(name + "-inputs"):
+            self._known[name] = self.store.load(name + "-inputs")
+        return self._known.get(name) == record
 
     def measure(self, man: Manifest, prefix: str, rotation: float, led: int) -> bool:
         """Measure one unit unless its stored version was made from the same entries;
@@ -142,12 +141,16 @@ class _Units:
             return False
         cal = record[0]["sha256"]
         key = (prefix, rotation)
-        rig = load_rig(man.rig_path())
+        rig_path = man.rig_path()
+        if rig_path not in self._rigs:
+            self._rigs[rig_path] = load_rig(rig_path)
+        rig = self._rigs[rig_path]
         if key not in self._geoms or self._geoms[key][0] != cal:
             self._geoms[key] = (cal, ex.rotation_geometry(man, rig, self.cam, rotation))
         df = ex.measure_unit(man, rig, self._geoms[key][1], rotation, led, self.lamps, self.estimator)
         self.store.save(name, df)
         self.store.save(name + "-inputs", record)
+        self._known[name] = record
         return True
 
 
@@ -193,7 +196,7 @@ def follow_extract(sample_dir, reference_dir, cam: CameraCalibration, lamps: dic
             man = load_manifest(sample_dir)
             plan = planned_units(man)
             if man.select("sequence"):
-                ex.check_compatible(sample_dir, reference_dir)
+                ex.check_compatible(man, ref)
             for (rot, led), want in (plan or {}).items():
                 if unit_ready(man, rot, led, want) and units.measure(man, "sample-", rot, led):
                     measured += 1
@@ -220,11 +223,11 @@ def _finish(sample_dir: Path, reference_dir: Path, cam, lamps, out, units: _Unit
             resume: bool, progress: bool, plots, workers: int | None) -> tuple[pd.DataFrame, list[WorkStore]]:
     """The finished capture: hand every unit whose record is the finished manifests' to
     the extraction's work store, then extract with it (the remaining units measured there)."""
-    fp = ex.measurement_fingerprint(sample_dir, reference_dir, cam, lamps, estimator=estimator)
+    ms, mr = load_manifest(sample_dir), load_manifest(reference_dir)        # the finished captures', read once
+    fp = ex.measurement_fingerprint(ms, mr, cam, lamps, estimator=estimator)
     store = WorkStore(work_folder_for(out), fp, resume=resume)
     handed, total = 0, 0
-    for prefix, folder in (("sample-", sample_dir), ("reference-", reference_dir)):
-        man = load_manifest(folder)
+    for prefix, man in (("sample-", ms), ("reference-", mr)):
         for rot, led in capture_units(man):
             name = unit_name(prefix, rot, led)
             total += 1
@@ -232,6 +235,6 @@ def _finish(sample_dir: Path, reference_dir: Path, cam, lamps, out, units: _Unit
                 store.save(name, units.store.load(name))
                 handed += 1
     _log.info(f"follow: capture complete; {handed} of {total} units were measured while it ran")
-    df = ex.extract_samples(sample_dir, reference_dir, cam, lamps, albedo=albedo, estimator=estimator,
+    df = ex.extract_samples(ms, mr, cam, lamps, albedo=albedo, estimator=estimator,
                             progress=progress, plots=plots, store=store, workers=workers)
     return df, [store, units.store]
