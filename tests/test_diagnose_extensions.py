@@ -13,8 +13,8 @@ from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes
 from glossrig.core.diagnose.channels import fill_missing_channels
 from glossrig.core.diagnose.data import LUMA, valid_luminance
 from glossrig.core.diagnose.frames import frame_causes
-from glossrig.core.diagnose.report import verdict
-from glossrig.core.diagnose.unexplained import open_world_verdict, unexplained
+from glossrig.core.diagnose.report import final_verdict, verdict
+from glossrig.core.diagnose.unexplained import retested_cause, unexplained
 
 from test_diagnose import WARD, synthetic_brdf, synthetic_frames, winner
 
@@ -74,11 +74,8 @@ def _diagnose_table(data, ward):
     """Verdict of the BRDF-space causes with the open-world rule, as glossrig diagnose decides it."""
     m = BrdfModel.build(data, ward)
     causes = brdf_causes(m)
-    v = verdict(causes)
-    named = next((c for c in causes if c.name == v), None)
-    after = named if named is not None and named.name != "flexible_material" else None
-    entries = unexplained(m, after=after)
-    return open_world_verdict(v, named.kind if named else None, entries), causes, entries
+    entries = unexplained(m, after=retested_cause(causes, verdict(causes)))
+    return final_verdict(causes, entries), causes, entries
 
 
 def test_axis_step_outside_the_catalogue_is_unexplained_along_the_axis():

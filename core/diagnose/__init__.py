@@ -22,7 +22,7 @@ from glossrig.core.diagnose.data import load_brdf, load_frames
 from glossrig.core.diagnose.frames import FrameSet, frame_causes
 from glossrig.core.diagnose.report import verdict, write_report
 from glossrig.core.diagnose.residuals import brdf_structure, frame_structure
-from glossrig.core.diagnose.unexplained import unexplained
+from glossrig.core.diagnose.unexplained import retested_cause, unexplained
 
 #: base-model median |relative error| above which a given fit cannot be this capture's material
 FIT_MISMATCH = 0.5
@@ -115,10 +115,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
                        "frames": "even / odd exposure index", "pixels": "even / odd exposure index (pixel set found under every LED)"},
             "time_s": time.time() - t0}
     # a named BRDF-space cause must leave no structure where no material acts (unexplained.py)
-    named = next((c for c in causes if c.name == verdict(causes)), None)
-    after = named if (named is not None and named.space == "brdf" and named.name != "flexible_material"
-                      and named.prediction is not None) else None
-    open_world = unexplained(m, fstructure, after=after)
+    open_world = unexplained(m, fstructure, after=retested_cause(causes, verdict(causes)))
     log(f"residual structure tested against {len(open_world)} variables; "
         f"{sum(e['significant'] for e in open_world)} carry structure no cause explains")
     return write_report(out, causes, base, structure, meta, plots=plots, unexplained=open_world,

@@ -157,7 +157,7 @@ class BrdfModel:
         model-error term fitted to the base model's residuals), with Huber's weight for rows
         beyond HUBER_C sigma. Earlier (issue 7) a fixed 0.3 % floor and a 0.2 deg angle term
         stood for the model error: the normalised held-out error was 2.8 on an ideal twin
-        capture and 57-924 on real materials. The base model's held-out calibration (the
+        capture and 57-924 on real materials (as issue 14 reports them). The base model's held-out calibration (the
         misfit term fitted on training folds only) is kept in ``self.calibration``."""
         from glossrig.core.diagnose.error_model import (fit_misfit, heldout_calibration, huber_sigma,
                                                         misfit_features, noise_variance, unit_scale)

@@ -6,7 +6,8 @@ its other channels. Diagnosis compares the Rec. 709 luminance ``y = sum_c LUMA_c
 with the base model, so a row that misses channel c gets, for that channel only, the
 prediction of the base model of channel c: the lobe L of the material fit (shared by the
 channels, as the luminance fit's lobe) with ``rho_d,c`` and ``rho_s,c`` solved by
-non-negative weighted least squares on the rows that have the channel (thesis eq. 4.79 per
+non-negative weighted least squares on the rows that have the channel
+(:func:`glossrig.core.diagnose.material_models._linear`; thesis eq. 4.79 per
 channel; the weights are ``weight_<c>``, the channel's inverse HDR variance, where the
 table has them). :func:`glossrig.core.fitting.fit.fit_samples` fills luminance's gaps the
 same way with each channel's own Ward fit; here the lobe is the one every cause of the
@@ -23,9 +24,9 @@ its weight times the noise floor.
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import nnls
 
 from glossrig.core.diagnose.data import LUMA
+from glossrig.core.diagnose.material_models import _linear
 
 MIN_ROWS = 50       # measured rows a channel needs for its base model to predict it elsewhere
 
@@ -43,7 +44,6 @@ def fill_missing_channels(t, L, relvar=None) -> tuple[np.ndarray, np.ndarray | N
     if valid.all():
         return y0, relvar, {}
     L = np.asarray(L, float)
-    X = np.stack([np.full(len(L), 1 / np.pi), L], axis=1)
     info: dict = {}
     for k, c in enumerate("rgb"):
         gap = ~valid[:, k]
@@ -57,10 +57,9 @@ def fill_missing_channels(t, L, relvar=None) -> tuple[np.ndarray, np.ndarray | N
         else:
             w = np.asarray(t[f"weight_{c}"], float)[rows] if f"weight_{c}" in t else np.ones(int(rows.sum()))
             sw = np.sqrt(np.where(np.isfinite(w) & (w > 0), w, 0.0))
-            coef, _ = nnls(X[rows] * sw[:, None], rgb[rows, k] * sw)
-            rgb[gap, k] = X[gap] @ coef
-            entry.update(predicted_by="the base model of the channel (shared lobe)", rho_d=float(coef[0]),
-                         rho_s=float(coef[1]))
+            rho_d, rho_s = _linear(L[rows], rgb[rows, k], sw)
+            rgb[gap, k] = rho_d / np.pi + rho_s * L[gap]
+            entry.update(predicted_by="the base model of the channel (shared lobe)", rho_d=rho_d, rho_s=rho_s)
         info[c] = entry
     y = rgb @ LUMA
     if relvar is not None:

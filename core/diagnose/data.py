@@ -24,8 +24,9 @@ from glossrig.core.capture import load_manifest
 from glossrig.core.errors import InputError
 from glossrig.core.extraction.extract import Measured, check_compatible, diffuse_normalize, measure_capture
 from glossrig.core.rig import load_rig
+from glossrig.core.samples import LUMINANCE_WEIGHTS
 
-LUMA = np.array([0.2126, 0.7152, 0.0722])
+LUMA = np.array(LUMINANCE_WEIGHTS)
 
 
 @dataclass

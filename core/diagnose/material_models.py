@@ -42,9 +42,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+from glossrig.core.diagnose.data import LUMA
 from glossrig.core.models.ward import WardParams, ward_from_angles
 
-LUMA = np.array([0.2126, 0.7152, 0.0722])
 ANGLES = ("theta_in", "phi_in", "theta_out", "phi_out", "theta_h", "phi_h", "theta_d")
 
 
@@ -127,6 +127,9 @@ def beckmann_lobe(theta_in, phi_in, theta_out, phi_out, theta_h, phi_h, theta_d,
 
 
 LOBES: dict[str, Callable[..., np.ndarray]] = {"ward": ward_lobe, "ggx": ggx_lobe, "beckmann": beckmann_lobe}
+#: range of Burley's F_D90 (:func:`grazing_factor`) the grazing_lobe cause searches: from a diffuse term that
+#: vanishes at grazing (0) to an eight-fold rise, beyond Burley's 0.5 + 2 roughness (at most 2.5)
+GRAZING_F90_RANGE = (0.0, 8.0)
 
 
 def grazing_factor(theta_in, theta_out, f90):
@@ -268,30 +271,6 @@ def fit_lobe(a: dict, y, W, kind: str = "ggx", start=(0.1, 0.1, 0.0), n=None, fi
     return f
 
 
-def fit_grazing(a: dict, y, W, lobe: LobeFit, bounds: tuple[float, float] = (0.0, 8.0)) -> LobeFit:
-    """The lobe of ``lobe`` kept, the diffuse term times Burley's grazing factor (:func:`grazing_factor`):
-    F_D90 by bounded scalar minimisation of the weighted squared residual (the objective of
-    :func:`fit_lobe`), rho_d and rho_s solved linearly at each step - ``y = rho_d G / pi + rho_s L``
-    is ``y / G = rho_d / pi + rho_s L / G`` with weights ``W G``."""
-    from scipy.optimize import minimize_scalar
-
-    y, W = np.asarray(y, float), np.asarray(W, float)
-    L = LOBES[lobe.kind](*(a[k] for k in ANGLES), lobe.alpha_x, lobe.alpha_y, lobe.lobe_rotation, lobe.n)
-
-    def solve(f90):
-        G = grazing_factor(a["theta_in"], a["theta_out"], f90)
-        rd, rs = _linear(L / G, y / G, W * G)
-        return rd, rs, float(np.sum((W * (rd / np.pi * G + rs * L - y)) ** 2))
-
-    grid = np.linspace(*bounds, 17)
-    k = int(np.argmin([solve(f)[2] for f in grid]))
-    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
-    f90 = float(minimize_scalar(lambda f: solve(f)[2], bounds=(lo, hi), method="bounded").x)
-    rd, rs, cost = solve(f90)
-    return LobeFit(lobe.kind, rd, rs, lobe.alpha_x, lobe.alpha_y, lobe.lobe_rotation, lobe.n,
-                   cost=cost / max(len(y), 1), f90=f90)
-
-
 def fresnel_profile(a: dict, y, W, folds, grid, kind: str = "ggx", start=(0.1, 0.1, 0.0)) -> dict:
     """Held-out error of the lobe with Schlick's factor at each fixed n of ``grid``:
     fitted on each fold's training rows, scored (weighted mean squared residual) on its
@@ -390,7 +369,7 @@ def material_causes(m) -> list:
     one = np.full_like(c["L"], 1 / np.pi)
     out.append(_scalar_cause(m, "grazing_lobe", doc,
                              lambda f90: ([one * grazing_factor(c["theta_in"], c["theta_out"], f90), c["L"]], None),
-                             (0.0, 8.0), "F_D90", "diffuse factor at grazing incidence and viewing"))
+                             GRAZING_F90_RANGE, "F_D90", "diffuse factor at grazing incidence and viewing"))
 
     # ---- the reference's own BRDF instead of Lambertian albedo 0.8 (no extra parameter)
     ref = getattr(m.data, "reference_brdf", None)

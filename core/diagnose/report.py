@@ -45,6 +45,23 @@ def verdict(causes: list[CauseResult]) -> str:
     return best.name
 
 
+def residual_after(entry: dict) -> str:
+    """The model whose residual an open-world entry tested: its ``after`` (a named cause tested
+    again), else the baseline of its space - the flexible material model in BRDF space, the
+    linear sensor in frame space (:mod:`glossrig.core.diagnose.unexplained`)."""
+    return entry.get("after") or ("flexible_material" if entry.get("space") == "brdf" else "linear sensor")
+
+
+def final_verdict(causes: list[CauseResult], entries: list[dict]) -> str:
+    """The report's verdict: :func:`verdict` of the causes, overruled by "unexplained" where the
+    open-world structure tests ``entries`` (:func:`glossrig.core.diagnose.unexplained.unexplained`)
+    say so (:func:`glossrig.core.diagnose.unexplained.open_world_verdict`)."""
+    from glossrig.core.diagnose.unexplained import open_world_verdict
+
+    v = verdict(causes)
+    return open_world_verdict(v, next((c.kind for c in causes if c.name == v), None), entries)
+
+
 def _plots(out: Path, structure: dict, causes: list[CauseResult]) -> list[str]:
     import matplotlib
 
@@ -116,19 +133,16 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
                  plots: bool = True, unexplained: list | None = None, calibration: dict | None = None) -> dict:
     """``unexplained``: the open-world structure tests (:func:`glossrig.core.diagnose.unexplained.unexplained`);
     ``calibration``: the base model's held-out error with the calibrated error model."""
-    from glossrig.core.diagnose.unexplained import open_world_verdict
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     causes = sorted(causes, key=lambda c: c.gain, reverse=True)
-    v = verdict(causes)
     unexplained = unexplained or []
-    v = open_world_verdict(v, next((c.kind for c in causes if c.name == v), None), unexplained)
+    v = final_verdict(causes, unexplained)
     rep = {"base_error": base_errors.get("brdf"), "base_errors": base_errors, "verdict": v,
            "calibration": calibration or {},
            "unexplained": [{"variable": e["variable"], "effect": e["effect"], "significant": e["significant"],
                             "space": e.get("space"), "p": e.get("p"), "effect_unit": e.get("effect_unit"),
-                            "after": e.get("after", "flexible_material" if e.get("space") == "brdf" else None),
+                            "after": residual_after(e),
                             "profile": e.get("profile")} for e in unexplained],
            "penalty": {"per_space": {k: {"gain_threshold": t, "per_extra_parameter": p}
                                      for k, (t, p) in THRESHOLDS.items()},
@@ -180,7 +194,7 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
         L += ["", "## Residual structure no cause explains", "",
               "| variable | space | residual after | effect | p | significant |", "|---|---|---|---|---|---|"]
         L += [f"| {e['variable']} | {e.get('space')} | "
-              f"{e.get('after', 'flexible_material' if e.get('space') == 'brdf' else 'linear sensor')} | "
+              f"{residual_after(e)} | "
               f"{e['effect']:.3g} | {e.get('p', float('nan')):.2g} | {e['significant']} |" for e in unexplained]
     L += ["", "## Causes and their physics", ""]
     for c in causes:

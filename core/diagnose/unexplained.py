@@ -24,25 +24,26 @@ the entries are reported with ``"after": <cause>``; in BRDF space these entries,
 flexible model's, then decide. For an instrument cause the variables are the image and
 cylinder position (POSITION_VARS), which every such cause acts through: structure that
 remains there means the cause only absorbed part of an effect outside the catalogue
-(measured: a 5 % step of the raw values along the cylinder axis, which a per-LED tilt of the
-LED emission fits in part, was named ``led_emission``), so the verdict is "unexplained" with
-that variable, not a wrong named cause. Position only: an instrument model carries no
+(a step of the values along the cylinder axis, which a per-LED tilt of the LED emission fits
+in part, was named ``led_emission`` before this rule; now it is "unexplained" along the axis:
+tests/test_diagnose_extensions.py::test_axis_step_outside_the_catalogue_is_unexplained_along_the_axis),
+so the verdict is "unexplained" with that variable, not a wrong named cause. Position only: an instrument model carries no
 material freedom, so its residual keeps any material departure in the angles and the signal
 level. For a named material or reference model the variables are the BRDF-space instrument
 variables (position and signal level), which no material can follow: a material model that
 explains the data better than the flexible one - a grazing rise of the diffuse term follows
 theta_in and theta_out, not the flexible model's theta_h - leaves none there, while the
-flexible model's residual still does (measured on a synthetic grazing term, F_D90 = 2.76:
-the signal level's bins spread by 13.4 % after the flexible model, 0.06 % after grazing_lobe).
+flexible model's residual may still sort by the signal level (a synthetic grazing term is
+named ``grazing_lobe``, not "unexplained":
+tests/test_diagnose_extensions.py::test_grazing_lobe_found_with_its_parameter).
 After a material model the residual is compared *within cells of the isotropic angles*
 (ANGLE_BINS quantile bins of theta_h, theta_d and theta_in; each row minus its cell's mean):
 on a glossy material the image position and the signal level follow the lobe angles (the
 highlight sits at one place of the image per LED), so a named model's remaining misfit in the
-angles also sorts by position and signal (measured on vch_golden_yellow at scale 0.125: after
-ggx_lobe the bins spread by 17.9 % along the distance from the optical centre and 17.6 % along
-the signal, and the verdict ggx_lobe - the best extension against the truth - became
-"unexplained"). What an instrument does to position varies within an angle cell, as the LEDs
-and rotations see the same angles at other places.
+angles also sorts by position and signal (without the cells, the rgl study's golden yellow
+got "unexplained" instead of ggx_lobe, the best extension against the truth; the study's
+current verdicts: validation/diagnose/rgl_study.md). What an instrument does to position
+varies within an angle cell, as the LEDs and rotations see the same angles at other places.
 """
 from __future__ import annotations
 
@@ -147,6 +148,17 @@ def unexplained(m, frame_structure: dict | None = None, after=None) -> list[dict
                     "p": p, "significant": bool(p < level and eff > FRAME_EFFECT_MIN),
                     "profile": {"x": b["x"], "mean": b["mean"], "n": b["n"]}})
     return out
+
+
+def retested_cause(causes: list, named: str):
+    """The cause whose own residual :func:`unexplained` tests again (its ``after``): the catalogue's
+    verdict ``named`` (:func:`glossrig.core.diagnose.report.verdict`) when it is a BRDF-space cause
+    with a prediction at every row, other than the flexible model (whose residual is the baseline
+    every entry already tests); else None."""
+    c = next((c for c in causes if c.name == named), None)
+    if c is None or c.space != "brdf" or c.name == "flexible_material" or c.prediction is None:
+        return None
+    return c
 
 
 def angle_cells(m, n: int = ANGLE_BINS) -> np.ndarray:

@@ -248,7 +248,7 @@ def extension_fits(A: dict, As: dict, y, W, idx, ward, score, rig_errors) -> dic
     import numpy as np
 
     from glossrig.core.diagnose.flexible import fit_flexible
-    from glossrig.core.diagnose.material_models import LobeFit, fit_grazing, fit_lobe
+    from glossrig.core.diagnose.material_models import LobeFit, fit_lobe
 
     start = (ward.alpha_x, ward.alpha_y, ward.lobe_rotation)
     out = {"beckmann_only": score(fit_lobe(As, y, W, "beckmann", start)),
@@ -267,6 +267,39 @@ def extension_fits(A: dict, As: dict, y, W, idx, ward, score, rig_errors) -> dic
                                   "lobe_rotation": ward.lobe_rotation, "stderr": {}},
                        "rig": rig_errors(pred), "heldout": None}
     return out
+
+
+def fit_grazing(a: dict, y, W, lobe):
+    """The study's fit of diagnose's ``grazing_lobe`` extension to a capture's rows: the lobe of ``lobe``
+    (a :class:`~glossrig.core.diagnose.material_models.LobeFit`) kept, the diffuse term times Burley's
+    grazing factor (:func:`~glossrig.core.diagnose.material_models.grazing_factor`; Burley, "Physically-Based
+    Shading at Disney", SIGGRAPH 2012). F_D90 in the catalogue cause's GRAZING_F90_RANGE by bounded scalar
+    minimisation of the weighted squared residual (the objective of ``fit_lobe``, eq. 4.81), rho_d and
+    rho_s solved linearly at each step - ``y = rho_d G / pi + rho_s L`` is ``y / G = rho_d / pi + rho_s L / G``
+    with weights ``W G``. Diagnose fits the same model per fold in its catalogue
+    (``material_models.material_causes`` through ``catalogue._scalar_cause``); the study needs one
+    LobeFit of all its rows to score against the truth (:func:`truth_of`)."""
+    import numpy as np
+    from scipy.optimize import minimize_scalar
+
+    from glossrig.core.diagnose.material_models import (ANGLES, GRAZING_F90_RANGE, LOBES, LobeFit, _linear,
+                                                        grazing_factor)
+
+    y, W = np.asarray(y, float), np.asarray(W, float)
+    L = LOBES[lobe.kind](*(a[k] for k in ANGLES), lobe.alpha_x, lobe.alpha_y, lobe.lobe_rotation, lobe.n)
+
+    def solve(f90):
+        G = grazing_factor(a["theta_in"], a["theta_out"], f90)
+        rd, rs = _linear(L / G, y / G, W * G)
+        return rd, rs, float(np.sum((W * (rd / np.pi * G + rs * L - y)) ** 2))
+
+    grid = np.linspace(*GRAZING_F90_RANGE, 17)
+    k = int(np.argmin([solve(f)[2] for f in grid]))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    f90 = float(minimize_scalar(lambda f: solve(f)[2], bounds=(lo, hi), method="bounded").x)
+    rd, rs, cost = solve(f90)
+    return LobeFit(lobe.kind, rd, rs, lobe.alpha_x, lobe.alpha_y, lobe.lobe_rotation, lobe.n,
+                   cost=cost / max(len(y), 1), f90=f90)
 
 
 def truth_ranking(r: dict) -> dict:
