@@ -12,6 +12,7 @@ from glossrig.core.design import coverage as cov
 from glossrig.core.design import placement as D
 from glossrig.core.design import fisher as fi
 from glossrig.core.errors import InputError
+from glossrig.core.runners import DaskRunner, LocalRunner
 from glossrig.core.rig import load_rig
 from glossrig.core.models.ward import WardParams, ward_from_angles
 
@@ -265,8 +266,8 @@ TINY = dict(space=D.SearchSpace(angle_step_deg=45.0, heights_mm=(0.0, 60.0), dis
 def test_optimise_in_one_process_and_on_dask_agree(rig):
     pytest.importorskip("distributed")
     mats = [("brushed", BRUSHED)]
-    local = D.optimise(rig, 3, mats, D.LocalRunner(), **TINY)
-    runner = D.DaskRunner(workers=2)
+    local = D.optimise(rig, 3, mats, LocalRunner(), **TINY)
+    runner = DaskRunner(workers=2)
     try:
         dask = D.optimise(rig, 3, mats, runner, **TINY)
     finally:
@@ -281,16 +282,16 @@ def test_optimise_in_one_process_and_on_dask_agree(rig):
 def test_unreachable_scheduler_is_a_clear_error():
     pytest.importorskip("distributed")
     with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
-        D.DaskRunner(address="tcp://127.0.0.1:1", timeout_s=0.5)
+        DaskRunner(address="tcp://127.0.0.1:1", timeout_s=0.5)
 
 
 def test_optimise_refuses_bad_input(rig):
     with pytest.raises(InputError, match="--leds"):
-        D.optimise(rig, 17, MATS, D.LocalRunner(), **TINY)
+        D.optimise(rig, 17, MATS, LocalRunner(), **TINY)
     with pytest.raises(InputError, match="lambda"):
-        D.optimise(rig, 2, MATS, D.LocalRunner(), lam=-1.0, **TINY)
+        D.optimise(rig, 2, MATS, LocalRunner(), lam=-1.0, **TINY)
     with pytest.raises(InputError, match="isotropic"):
-        D.optimise(rig, 2, MATS, D.LocalRunner(), iso_weight=float("nan"), **TINY)
+        D.optimise(rig, 2, MATS, LocalRunner(), iso_weight=float("nan"), **TINY)
     with pytest.raises(InputError, match="whole degrees"):
         D.SearchSpace(rotations_deg=(0, 22.5))
     with pytest.raises(InputError, match="extended-Ward"):

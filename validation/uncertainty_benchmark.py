@@ -145,7 +145,7 @@ def _calibration(df, files: dict, channels, draws: int) -> None:
         _PARAMS = {c: f.params for c, f in fit_samples(df, channels=channels, footprint=False,
                                                           budget=False).fits.items()}
     cal = cu.load_inputs(files["camera"], files["lamps"], files["sample"], sorted(df["rotation"].unique()))
-    cu.calibration_component(df, _PARAMS, cal, n_draws=draws)
+    cu.calibration_component(df, _PARAMS, cal, n_draws=draws, footprint=True)   # refits as glossrig fit's default
 
 
 _PARAMS = None

@@ -110,19 +110,26 @@ def add_lamps_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("specular_dir", help="capture folder of the specular sample")
     p.add_argument("--camera", required=True, help="camera.json from glossrig calibrate camera")
     p.add_argument("--out", required=True, help="lamps.json to write")
+    p.add_argument("--draws", type=int, default=None,
+                   help="draws of the camera calibration and poses for each lamp's stated uncertainty "
+                        "(default 24)")
+    p.add_argument("--seed", type=int, default=0, help="seed of those draws (default 0)")
     add_force_option(p, "an existing --out file")
     p.add_argument("--no-progress", action="store_true")
 
 
 def run_lamps(args) -> int:
     from glossrig.core.calibration.intrinsics import load_camera
-    from glossrig.core.calibration.lamps import calibrate_lamps, save_lamps
+    from glossrig.core.calibration.lamps import LAMP_DRAWS, calibrate_lamps, save_lamps
 
     prepare_output(args.out, args.force)
-    d = calibrate_lamps(args.specular_dir, load_camera(args.camera), progress=not args.no_progress)
+    d = calibrate_lamps(args.specular_dir, load_camera(args.camera), progress=not args.no_progress,
+                        n_draws=LAMP_DRAWS if args.draws is None else args.draws, seed=args.seed)
     save_lamps(d, args.out)
     for k, v in d["lamps_mm"].items():
-        print(f"LED {k}: {[round(x, 2) for x in v]} mm (spread {d['spread_mm'][k]:.2f} mm)")
+        print(f"LED {k}: {[round(x, 2) for x in v]} mm, standard uncertainty "
+              f"{[round(x, 2) for x in d['std_mm'][k]]} mm per holder axis "
+              f"(spread of the highlight estimates {d['spread_mm'][k]:.2f} mm)")
     print(f"lamp positions written to {args.out}")
     return 0
 
@@ -141,7 +148,10 @@ SUBVERBS = (
                         "themselves and read no geometry JSON; use this to check the markers and poses "
                         "(--diagnostic draws them) before measuring."),
     SubVerb("lamps", "lamp positions from a capture of a specular sample", add_lamps_arguments, run_lamps,
-            description="Lamp positions (thesis 4.3.4): for every sequenced LED, the mirror rays of the 50 "
-                        "brightest samples of a highly specular sample (the transparency sheet), intersected "
-                        "with the LEDs' measured distance from the cylinder axis."),
+            description="Lamp positions (thesis 4.3.4): for every sequenced LED, the mirror rays of the "
+                        "highlight's samples of a highly specular sample (the transparency sheet), intersected "
+                        "with the LEDs' measured distance from the cylinder axis, refined with the sample's "
+                        "diffuse reflection. Each lamp's standard uncertainty (lamps.json std_mm, per holder "
+                        "axis) is the spread of the positions solved again under --draws draws of the camera "
+                        "calibration and the capture's poses, with the refinement's noise."),
 )

@@ -145,6 +145,7 @@ def add_optimise_arguments(p) -> None:
 
 def run_optimise(args) -> int:
     from glossrig.core.design import placement as D
+    from glossrig.core.runners import make_runner
     from glossrig.core.design.optimise_report import ScoreSettings, optimised_rig_header, write_design_report
     from glossrig.core.rig import load_rig
 
@@ -163,7 +164,7 @@ def run_optimise(args) -> int:
                           distances_mm=tuple(_floats(args.distances, "--distances")),
                           rotations_deg=tuple(range(-180, 180, args.rotation_step)))
     limits = D.MountingLimits()
-    runner = D.make_runner(args.scheduler, args.workers)
+    runner = make_runner(args.scheduler, args.workers)
     say(f"sweeping on {runner.name}")
     try:
         res = D.optimise(rig, args.leds, materials, runner, space=space, limits=limits, n_rotations=args.rotations,
@@ -214,6 +215,11 @@ def add_errors_arguments(p) -> None:
                    help="budget: sample pose translation uncertainty per axis, mm (default 0.15 x 0.25 / --scale)")
     p.add_argument("--led-aperture", type=float, default=None, metavar="RAD",
                    help="budget: the LEDs' angular diameter seen from the sample (default 0.0025; 0 for points)")
+    p.add_argument("--camera", default=None, metavar="CAMERA_JSON",
+                   help="budget: a camera calibration (glossrig calibrate camera) at the --scale image size: its "
+                        "intrinsics are drawn from its views as glossrig fit draws them, and the pose figures "
+                        "default to the poses' own noise (0.03 deg, 0.02 mm x 0.25 / --scale); without it the pose "
+                        "figures carry the intrinsics")
     p.add_argument("--out", default=None, help="JSON file to write (default: print)")
     add_force_option(p, "an existing --out file")
 
@@ -222,6 +228,23 @@ def _nonnegative(v, name):
     if v is not None and not (math.isfinite(v) and v >= 0):
         raise InputError(f"{name} must be a number >= 0, got {v!r}")
     return v
+
+
+def _camera_views(path: str, size: tuple[int, int]):
+    """The board views of a camera calibration (for the budget's intrinsics draws); its image
+    must be the design's (``size``)."""
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.fitting.calibration_uncertainty import CameraViews
+
+    cam = load_camera(path)
+    if tuple(cam.image_size) != tuple(size):
+        raise InputError(f"--camera: calibrated at {cam.image_size[0]}x{cam.image_size[1]} px, the design's image at "
+                         f"--scale is {size[0]}x{size[1]} px", path=path)
+    views = CameraViews.from_camera_doc(cam.meta)
+    if views is None:
+        raise InputError("--camera: the file lacks the board views (write it with glossrig calibrate camera)",
+                         path=path)
+    return views
 
 
 def run_errors(args) -> int:
@@ -239,13 +262,14 @@ def run_errors(args) -> int:
     for v, name in ((args.model_gain, "--model-gain"), (args.lamp_std, "--lamp-std"), (args.pose_rot, "--pose-rot"),
                     (args.pose_t, "--pose-t"), (args.led_aperture, "--led-aperture")):
         _nonnegative(v, name)
-    errs = D.design_errors(rig, materials, rotations=rots, led_ids=leds, scale=args.scale, noise=args.noise,
-                           gain_rel=args.gain_noise)
     opt = {k: v for k, v in (("gain_rel", args.model_gain), ("lamp_std_mm", args.lamp_std),
                              ("pose_rot_deg", args.pose_rot), ("pose_t_mm", args.pose_t),
                              ("led_aperture", args.led_aperture)) if v is not None}
-    budget = EB.design_budget(rig, materials, rotations=rots, led_ids=leds, scale=args.scale, noise=args.noise,
-                              **opt)
+    if args.camera:
+        opt["camera_views"] = _camera_views(args.camera, tuple(rig.camera.size(args.scale)))
+    # one walk over the design's pixels gives both figures
+    budget, errs = EB.budget_and_bound(rig, materials, rotations=rots, led_ids=leds, scale=args.scale,
+                                       noise=args.noise, bound_gain_rel=args.gain_noise, **opt)
     doc = {"rig": str(rig.path), "leds": leds, "rotations_deg": rots, "scale": args.scale, "noise": args.noise,
            "gain_noise": args.gain_noise,
            "expected_uncertainty": budget,

@@ -252,7 +252,9 @@ def _add_calibration_component(args, df, mfit, log) -> None:
     cal = load_inputs(files["camera"], files["lamps"], files["capture"], sorted(df["rotation"].unique()))
     comp = calibration_component(df, {c: f.params for c, f in mfit.fits.items()}, cal,
                                  n_draws=args.calibration_draws, seed=args.seed, weighting=args.weighting,
-                                 clip=args.clip, use_weight_column=not args.ignore_weight_column)
+                                 clip=args.clip, use_weight_column=not args.ignore_weight_column,
+                                 footprint=any((f.footprint or {}).get("model") == "footprint-averaged"
+                                               for f in mfit.fits.values()))
     for c, f in mfit.fits.items():
         if f.uncertainty is not None:
             f.uncertainty = add_calibration(f.uncertainty, comp[c])

@@ -24,6 +24,20 @@ Departures from the text:
   the highlight the sheet reflects rho_d / pi of the irradiance I cos(theta_in) / d^2,
   whose pattern over thousands of samples fixes the lamp's azimuth and height to a
   fraction of a millimetre; the lamp stays at its measured distance from the axis.
+
+Stated uncertainty (``std_mm`` of lamps.json, per LED and holder axis; the thesis states
+none): with the true geometry the twin's lamps come out within 0.1-0.2 mm (the refinement's
+own noise), with the calibrated geometry 0.8-2.3 mm off at scale 0.1, the same way for
+every LED of a calibration - the error is the geometry's (intrinsics, holder and cylinder
+poses), which the highlight and the diffuse pattern inherit through the rays, normals and
+camera centre. So the stated uncertainty is that of the geometry propagated by Monte Carlo
+(GUM Supplement 1, :func:`geometry_draws`: the camera calibration redrawn by a parametric
+bootstrap and the capture's poses within their stated uncertainty, as the fit's calibration
+component draws them, :mod:`glossrig.core.fitting.calibration_uncertainty`) plus the
+refinement's noise covariance (s^2 (J^T J)^-1), in quadrature. It scales with the pixel
+size as the geometry's errors do. Not counted: the LED's distance from the axis (taken as
+measured) and whatever the poses' stated uncertainty leaves out (it counts their edge-fit
+noise only; validation/uncertainty_coverage.md, section 2, compares stated and actual).
 """
 from __future__ import annotations
 
@@ -37,11 +51,16 @@ from glossrig.core.toml_input import read_json
 from glossrig.core.errors import InputError
 
 N_BRIGHTEST = 50          # the least number of valid samples accepted
-#: Stated standard uncertainty (mm, per holder axis) of a calibrated lamp position, written
-#: to lamps.json as ``std_mm`` (type B: the twin's lamp calibration errs by 0.6-0.9 mm in 3-D,
-#: validation/pipeline_study.py and the demo's recovery.json; ~0.5 mm per axis). Readers
-#: take it as the default for files written before the key existed.
+#: Standard uncertainty (mm, per holder axis) readers take for a lamp file that states none
+#: (written before ``std_mm`` existed; type B: the twin's lamp calibration erred by 0.6-0.9 mm in
+#: 3-D at scale 0.25, validation/pipeline_study.py). :func:`calibrate_lamps` states each lamp's own.
 LAMP_STD_MM = 0.5
+#: Draws of the geometry for the stated lamp uncertainty (:func:`geometry_draws`): 24 draws
+#: estimate a standard deviation to about 15 % (1 / sqrt(2 (n - 1))).
+LAMP_DRAWS = 24
+#: At most this many samples per LED are solved again in each draw (a fixed random subset):
+#: the draws measure how the geometry moves the solution, which a subset shows as well.
+DRAW_ROWS = 20_000
 PEAK_FRACTION = 0.5
 
 
@@ -139,11 +158,80 @@ def refine_with_diffuse(lamp0: np.ndarray, points: np.ndarray, normals: np.ndarr
     L = _on_cylinder(res.x[0], res.x[1], distance, axis_point, a, ref)
     fit = res.x[2] * k0 * model(res.x[:2])
     rms = float(np.median(np.abs(fit / v - 1)))
-    return L, {"median_abs_rel_residual": rms, "samples": int(len(P)), "shift_mm": float(np.linalg.norm(L - lamp0))}
+    # noise covariance of (azimuth, height): s^2 (J^T J)^-1 from least_squares' loss-scaled
+    # Jacobian and robust cost (s^2 = 2 cost / (n - p), the residual variance where the
+    # soft-L1 loss is quadratic), mapped to the holder frame by dL/d(azimuth, height)
+    J = np.asarray(res.jac, float)
+    s2 = 2 * float(res.cost) / max(len(res.fun) - 3, 1)
+    cov_x = s2 * np.linalg.pinv(J.T @ J)[:2, :2]
+    h = 1e-6
+    G = np.stack([(_on_cylinder(res.x[0] + h, res.x[1], distance, axis_point, a, ref) - L) / h, a], axis=1)
+    return L, {"median_abs_rel_residual": rms, "samples": int(len(P)), "shift_mm": float(np.linalg.norm(L - lamp0)),
+               "noise_cov_mm2": (G @ cov_x @ G.T).tolist()}
 
 
-def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = True) -> dict:
-    """Lamp position of every LED sequenced in a capture of a specular sample.
+def _solve_lamp(pts, nrm, centre, vals, distance, axis_point, axis_dir, refine: bool):
+    """One LED's lamp position from its samples (surface points, normals, camera centre:
+    holder frame): the highlight estimate (:func:`lamp_from_highlight`), then, with
+    ``refine``, the diffuse refinement (:func:`refine_with_diffuse`). Returns (lamp,
+    spread of the highlight estimates, highlight estimate, refinement statistics or None)."""
+    hl, spread = lamp_from_highlight(pts, nrm, centre, vals, distance, axis_point, axis_dir)
+    if not refine:
+        return hl, spread, hl, None
+    lamp, stats = refine_with_diffuse(hl, pts, nrm, vals, distance, axis_point, axis_dir)
+    return lamp, spread, hl, stats
+
+
+def geometry_draws(camera_json, specular_dir, units: list[dict], refine: bool = True, n_draws: int = LAMP_DRAWS,
+                   seed: int = 0) -> tuple[dict[int, np.ndarray], bool]:
+    """The lamp positions solved again under ``n_draws`` draws of the geometry they were
+    found with (GUM Supplement 1, Monte Carlo): the camera calibration (intrinsics and
+    distortion together, a parametric bootstrap of the calibration) and the specular
+    capture's holder and cylinder poses within their stated uncertainty, as
+    :func:`glossrig.core.fitting.calibration_uncertainty.draw_calibration` draws them for a
+    fit. Each draw casts every sample's ray again (:func:`glossrig.core.extraction.cylinder.surface_samples`),
+    keeps its measured value, and repeats the solve (:func:`_solve_lamp`) in the drawn
+    holder frame, on at most :data:`DRAW_ROWS` samples per LED. ``units``: per LED ``led,
+    rotation, u, v`` (block corners, centre at ``+ 0.5``), ``values``, ``distance``.
+    Returns LED -> (n_draws, 3) positions (mm), and whether the intrinsics were drawn (not
+    where the camera file lacks the calibration's views, :class:`~glossrig.core.fitting.calibration_uncertainty.CameraViews`).
+    """
+    from glossrig.core.calibration.poses import relative_to_holder
+    from glossrig.core.extraction.cylinder import surface_samples
+    from glossrig.core.fitting.calibration_uncertainty import draw_calibration, intrinsics_drawn, load_inputs
+
+    cal = load_inputs(camera_json, None, specular_dir, sorted({float(x["rotation"]) for x in units}))
+    rng = np.random.default_rng(seed)
+    sub = []
+    for x in units:
+        n = len(x["values"])
+        idx = np.sort(rng.choice(n, DRAW_ROWS, replace=False)) if n > DRAW_ROWS else np.arange(n)
+        sub.append({**x, "u": np.asarray(x["u"])[idx], "v": np.asarray(x["v"])[idx],
+                    "values": np.asarray(x["values"])[idx]})
+    out: dict[int, list] = {int(x["led"]): [] for x in units}
+    for _ in range(n_draws):
+        K, dist, poses, *_ = draw_calibration(cal, rng, ("intrinsics", "poses"))
+        for x in sub:
+            (Rh, th), (Rc, tc) = poses[float(x["rotation"])]
+            R_cyl, t_cyl = relative_to_holder(Rh, th, Rc, tc)
+            uc, vc = x["u"] + 0.5, x["v"] + 0.5
+            s = surface_samples(K, dist, cal.size, Rh, th, R_cyl, t_cyl, cal.radius, cal.height, pixels=(uc, vc))
+            # surface_samples keeps the rays that meet the sample, in order: find them by pixel
+            W = float(cal.size[0]) + 1.0
+            keep = np.isin(vc * W + uc, s.v * W + s.u)
+            lamp, *_ = _solve_lamp(s.points, s.normals, s.camera_centre, x["values"][keep], x["distance"], t_cyl,
+                                   s.axis, refine)
+            out[int(x["led"])].append(lamp)
+    return {k: np.asarray(v) for k, v in out.items()}, intrinsics_drawn(cal)
+
+
+def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = True, n_draws: int = LAMP_DRAWS,
+                    seed: int = 0) -> dict:
+    """Lamp position of every LED sequenced in a capture of a specular sample, with its
+    standard uncertainty per holder axis (``std_mm``): the spread of the positions
+    solved again under draws of the geometry they were found with (:func:`geometry_draws`)
+    and the noise of the diffuse refinement (its residual-based covariance), combined in
+    quadrature. The LED's distance from the axis is the rig's measured one, taken as exact.
 
     A capture that cannot serve stops before any image is read: one without exposure
     sequences (a checkerboard capture) or one whose manifest labels a Lambertian
@@ -152,6 +240,8 @@ def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = Tr
     from glossrig.core.extraction.extract import measure_capture
     from glossrig.core.rig import load_rig
 
+    if n_draws < 2:
+        raise InputError(f"the lamp uncertainty needs at least 2 draws of the geometry, got {n_draws}")
     man = load_manifest(specular_dir)
     man.require_sequences("calibrate lamps", "SPECULAR_DIR")
     if str(man.material).strip().lower().startswith("lambert"):
@@ -161,7 +251,7 @@ def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = Tr
                            what="calibrate lamps")
     df = meas.table
     rig = load_rig(meas.rig_path)
-    lamps, spreads, highlight, stats = {}, {}, {}, {}
+    lamps, spreads, highlight, stats, units = {}, {}, {}, {}, []
     lum = 0.2126 * df.r + 0.7152 * df.g + 0.0722 * df.b
     for led, sub in df.groupby("led"):
         rot = sub.rotation.iloc[0]
@@ -174,14 +264,24 @@ def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = Tr
         nrm = sub[["nx", "ny", "nz"]].to_numpy()
         dist = float(np.hypot(rig.led(int(led)).position[0], rig.led(int(led)).position[2]))
         vals = lum[sub.index].to_numpy()
-        lamp, spread = lamp_from_highlight(pts, nrm, centre, vals, dist, axis_point, axis_dir)
-        highlight[int(led)] = lamp.tolist()
-        if refine:
-            lamp, stats[int(led)] = refine_with_diffuse(lamp, pts, nrm, vals, dist, axis_point, axis_dir)
-            if stats[int(led)]["shift_mm"] > 15:
-                raise InputError(f"LED {led}: the diffuse refinement moved the lamp {stats[int(led)]['shift_mm']:.1f} mm "
+        lamp, spread, hl, st = _solve_lamp(pts, nrm, centre, vals, dist, axis_point, axis_dir, refine)
+        highlight[int(led)] = hl.tolist()
+        if st is not None:
+            stats[int(led)] = st
+            if st["shift_mm"] > 15:
+                raise InputError(f"LED {led}: the diffuse refinement moved the lamp {st['shift_mm']:.1f} mm "
                                  "from the highlight estimate; the specular capture looks wrong", path=specular_dir)
         lamps[int(led)], spreads[int(led)] = lamp, spread
+        units.append({"led": int(led), "rotation": float(rot), "u": sub["u"].to_numpy(float),
+                      "v": sub["v"].to_numpy(float), "values": vals, "distance": dist})
+    drawn, intr = geometry_draws(cam.path, specular_dir, units, refine, n_draws, seed)
+    std, parts = {}, {}
+    for k, lamp in lamps.items():
+        geo = drawn[k].std(axis=0, ddof=1)
+        noise = np.sqrt(np.clip(np.diag(stats[k]["noise_cov_mm2"]), 0, None)) if k in stats else np.zeros(3)
+        std[str(k)] = np.sqrt(geo ** 2 + noise ** 2).tolist()
+        parts[str(k)] = {"geometry_mm": geo.tolist(), "noise_mm": noise.tolist(),
+                         "draws_mean_minus_nominal_mm": (drawn[k].mean(axis=0) - lamp).tolist()}
     return {"kind": "glossrig.lamps", "rig": rig.name, "source": str(Path(specular_dir).resolve()),
             "method": "highlight-weighted mean of the mirror rays of every sample above half the peak, "
                       "intersected with the LED's distance from the axis (thesis 4.3.4), then refined "
@@ -189,9 +289,15 @@ def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = Tr
                       "highlight-weighted mean of the mirror rays (thesis 4.3.4)",
             "lamps_mm": {str(k): v.tolist() for k, v in lamps.items()},
             "spread_mm": {str(k): v for k, v in spreads.items()},
-            "std_mm": {str(k): [LAMP_STD_MM] * 3 for k in lamps},
-            "std_basis": "stated standard uncertainty per holder axis (type B, from the twin's recovery of lamp "
-                         "positions); spread_mm is the spread of the per-pixel estimates, not this",
+            "std_mm": std,
+            "std_basis": f"standard uncertainty per holder axis: the spread of the positions solved again under "
+                         f"{n_draws} draws of the " + ("camera calibration and the " if intr else "") +
+                         "specular capture's poses (GUM-S1), and the diffuse refinement's noise, in quadrature; "
+                         + ("" if intr else "the intrinsics not drawn (the camera file holds no calibration "
+                                            "views); ") +
+                         "the LED's distance from the axis taken as exact. spread_mm is the spread of the "
+                         "per-pixel highlight estimates, not this",
+            "std_components": parts, "std_draws": {"n": int(n_draws), "seed": int(seed), "intrinsics_drawn": intr},
             "highlight_estimate_mm": {str(k): v for k, v in highlight.items()},
             "diffuse_refinement": {str(k): v for k, v in stats.items()}}
 

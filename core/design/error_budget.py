@@ -6,16 +6,26 @@ that bound leaves out: the calibration and the LED's block-wise fluctuation. Thi
 module predicts the same components that ``glossrig fit``'s budget measures
 (:mod:`glossrig.core.fitting.uncertainty`, GUM JCGM 100:2008), each from a stated
 model of the error, propagated by linearisation at the design's rows (the pixels that
-see the sample, thinned as the Fisher sum of :mod:`glossrig.core.design.placement`):
-a change ``df`` of the data moves the least-squares parameters by
+see the sample, thinned as the Fisher sum of :mod:`glossrig.core.design.placement`)
+**through the estimator ``glossrig fit`` uses**: the weighted least squares of thesis
+eq. 4.81 with residual multipliers ``W_i = m_i / s_i`` - ``m`` the peak weight of eq.
+4.82 (:func:`glossrig.core.fitting.fit.peak_weight`, ``mirror``), ``s`` the standard
+deviation ``glossrig extract`` writes as the row's ``weight`` (1 / s^2): the sensor noise
+of the sample's and the reference's HDR values, of which the row is the ratio (eq.
+4.78; :func:`ratio_sigma`). A change ``df`` of the data moves the parameters by
 
-    d theta = A^-1 sum_i J_i^T df_i / sigma_i^2,     A = sum_i J_i^T J_i / sigma_i^2
+    d theta = A^-1 sum_i W_i^2 J_i^T df_i,     A = sum_i W_i^2 J_i^T J_i
 
-(the inverse-variance fit; ``J`` the Ward Jacobian of eq. 4.79, ``sigma`` the design's
-noise model). Independent error sources ``k`` of standard deviation ``s_k`` add
-``sum_k (s_k d theta_k)^2`` to a component's variance:
+(``J`` the Ward Jacobian of eq. 4.79). These weights are not inverse variances (eq.
+4.82's factor, and no per-pixel LED term), so the fit's response to an error is not the
+Fisher-weighted one; at the coverage study's design the difference moves the components
+by tens of per cent (validation/uncertainty_coverage.md, section 3). Independent error
+sources ``k`` of standard deviation ``s_k`` add ``sum_k (s_k d theta_k)^2`` to a
+component's variance:
 
-* ``noise`` - ``A^-1`` (the Cramer-Rao bound of :mod:`~glossrig.core.design.fisher`);
+* ``noise`` - the sandwich ``A^-1 B A^-1``, ``B = sum W_i^4 sigma_i^2 J_i^T J_i``
+  (:func:`glossrig.core.design.fisher.sandwich_parts`), ``sigma`` the noise model's
+  (``--noise``) for the sample and the reference in quadrature;
 * ``model`` - a relative gain ``g_b`` common to every sample of one LED x rotation image
   (``df = g_b f`` on block ``b``): what is left of the LED's output fluctuation (thesis
   4.3.3, fig. 4.12) after neighbour correction and patch normalisation (eq. 4.32-4.50),
@@ -25,9 +35,12 @@ noise model). Independent error sources ``k`` of standard deviation ``s_k`` add
   per holder axis (``df = f`` at the moved lamp ``- f``, every rotation of that LED);
   the sample's pose against camera and lamps per rotation, :data:`POSE_ROT_DEG` about
   each holder axis and :data:`POSE_T_MM` along each at scale 0.25, in proportion to the
-  pixel size at other scales (the sample's points and normals
-  moved rigidly; an error of the intrinsics is absorbed by the poses solved with them,
-  thesis 4.3.2, and enters through these figures); the reference's albedo
+  pixel size at other scales (the sample's points and normals moved rigidly; these figures
+  carry the intrinsics' error as far as a rigid move can); or, given a camera calibration's
+  views (``camera_views``), the intrinsics drawn as ``glossrig fit`` draws them
+  (:class:`IntrinsicsDraws`, GUM-S1: the pixels' rays cast again through each drawn camera
+  with the poses re-solved from the markers) and the poses' own noise
+  (:data:`POSE_NOISE_ROT_DEG`, :data:`POSE_NOISE_T_MM`); the reference's albedo
   (:data:`~glossrig.core.fitting.calibration_uncertainty.ALBEDO_U_REL` of rho_d and rho_s)
   and its angular variation (``df = f h (1 - cos theta - mean)`` for ``theta_in`` and
   ``theta_out``, ``h`` of :data:`~glossrig.core.fitting.calibration_uncertainty.ALBEDO_ANGULAR_U_REL`);
@@ -35,9 +48,17 @@ noise model). Independent error sources ``k`` of standard deviation ``s_k`` add
   counted in full as the budget does.
 
 Combined: root sum of squares. Assumptions: the linearisation (errors small against the
-lobe width), inverse-variance weights (``glossrig fit`` uses eq. 4.82's, within tens of
-per cent of this), and the rigid-motion model of the pose error (a pixel's ray is not
-re-intersected).
+lobe width; not for the intrinsics draws, which are refitted), the point model (the fit's
+footprint model changes the weights' effect little), no peak clipping (eq. 6.5), the green
+channel's noise (in the weights a factor common to all rows, which cancels; the
+luminance's noise is ~0.8 of it), the rigid-motion model of the pose error (a pixel's ray
+is not re-intersected), and lamps drawn independently of the geometry. Without camera views
+the rigid pose figures fall short for rho_s on the twin: its calibration error there is
+~3-5 times what they give, most of it the intrinsics' error acting at second order, which
+the refitted draws reproduce (validation/uncertainty_coverage.md, section 3).
+The noise-only Cramer-Rao bound of the same rows (``design_errors``' figure) comes
+with the budget from :func:`budget_and_bound`, so ``glossrig design errors`` walks the
+geometry once.
 """
 from __future__ import annotations
 
@@ -62,13 +83,13 @@ GAIN_REL = 0.005
 POSE_ROT_DEG = 0.05
 POSE_T_MM = 0.15
 POSE_SCALE = 0.25
+#: The same where the intrinsics are drawn themselves (``camera_views``): the poses' own noise,
+#: what the marker edge fit states (the coverage study's twin calibrations at scale 0.1: RMS
+#: over the holder axes 0.07 deg and 0.06 mm; validation/uncertainty_coverage.md, section 3),
+#: at :data:`POSE_SCALE`.
+POSE_NOISE_ROT_DEG = 0.03
+POSE_NOISE_T_MM = 0.02
 COMPONENTS = ("noise", "model", "calibration", "footprint")
-
-
-def _small_rotation(w) -> np.ndarray:
-    import cv2
-
-    return cv2.Rodrigues(np.asarray(w, float).reshape(3, 1))[0]
 
 
 def _moved(geom: cov.PixelGeometry, R=None, t=None) -> cov.PixelGeometry:
@@ -81,6 +102,73 @@ def _moved(geom: cov.PixelGeometry, R=None, t=None) -> cov.PixelGeometry:
 def _ward(a: dict, rotation: float, p: WardParams):
     return fi.ward_jacobian(np.radians(a["theta_in"]), np.radians(a["theta_out"]), np.radians(a["theta_h"]),
                             np.radians(np.mod(a["phi_h"] - rotation, 360.0)), p)
+
+
+#: The BRDF angles a refit needs (eq. 4.79's and eq. 4.82's).
+_ANGLES = ("theta_in", "phi_in", "theta_out", "phi_out", "theta_h", "phi_h")
+#: Rows of the intrinsics draws' refits, in all (as ``glossrig fit``'s calibration component:
+#: :func:`glossrig.core.fitting.calibration_uncertainty.calibration_component`'s ``max_rows``).
+INTRINSICS_ROWS = 20_000
+
+
+class IntrinsicsDraws:
+    """The calibration's intrinsics drawn as ``glossrig fit``'s calibration component draws
+    them (:mod:`glossrig.core.fitting.calibration_uncertainty`, GUM-S1): each draw re-runs the
+    camera calibration on its views' corners moved by noise of its reprojection RMS
+    (:func:`~glossrig.core.fitting.calibration_uncertainty.camera_draw`, intrinsics and
+    distortion together), re-solves the holder's and cylinder's marker PnP with the drawn
+    camera (the markers' corners as the nominal camera sees them), and casts every pixel's
+    ray again through it (:func:`~glossrig.core.fitting.calibration_uncertainty.row_angles`).
+    The pipeline then takes each pixel's value for the angles of the drawn geometry: the
+    data are the nominal angles' values, the model is evaluated at the drawn ones. This is
+    the intrinsics' effect that the poses do not absorb (a rigid pose figure cannot carry
+    it; validation/uncertainty_coverage.md, section 3). ``views``: a
+    :class:`~glossrig.core.fitting.calibration_uncertainty.CameraViews` of a calibration at
+    the design's image size."""
+
+    def __init__(self, rig, px: cov.PixelGeometry, views, n_draws: int, seed: int):
+        import cv2
+
+        from glossrig.core.calibration.markers import cylinder_marker_corners, holder_marker_corners
+        from glossrig.core.errors import InputError
+        from glossrig.core.fitting import calibration_uncertainty as cu
+
+        if n_draws < 2:
+            raise InputError(f"the intrinsics need at least 2 draws, got {n_draws}")
+        cam = rig.camera
+        K, dist, size = cam.matrix(px.scale), np.asarray(cam.distortion, float), tuple(cam.size(px.scale))
+        R, t = (np.asarray(x, float) for x in cam.pose())
+        parts = {}
+        for key, obj in (("holder", np.concatenate([holder_marker_corners(rig), holder_marker_corners(rig, inner=True)])),
+                         ("cylinder", cylinder_marker_corners(rig))):
+            img = cv2.projectPoints(obj.astype(np.float64), cv2.Rodrigues(R)[0], t, K, dist)[0].reshape(-1, 2)
+            parts[key] = {"R": R, "t": t, "R_pnp": R, "t_pnp": t, "obj": obj, "img": img,
+                          "std_rot_deg": np.zeros(3), "std_t_mm": np.zeros(3)}
+        self.cal = cu.CalibrationInputs(K=K, dist=dist, size=size, lamps={}, lamps_std={},
+                                        radius=rig.cylinder_radius, height=rig.sample_height, poses={0.0: parts},
+                                        camera_views=views)
+        rng = np.random.default_rng(seed)
+        self.draws = [cu.draw_calibration(self.cal, rng, ("intrinsics",))[:3] for _ in range(n_draws)]
+        self.rig, self.px = rig, px
+        # pixel centres as row_angles casts them (u + 0.5: a Bayer block's corner there)
+        self.u, self.v = px.u.astype(float) - 0.5, px.v.astype(float) - 0.5
+
+    def angles(self, led: int) -> tuple[dict, list[dict]]:
+        """The nominal and each draw's BRDF angles (radians, rotation 0) of every pixel of the
+        design for ``led``; NaN where a ray misses or a direction is below the horizon."""
+        from glossrig.core.fitting import calibration_uncertainty as cu
+
+        lamps = {int(led): np.asarray(self.rig.led(led).position, float)}
+        n = self.u.size
+        args = (self.u, self.v, np.full(n, int(led)), np.zeros(n))
+
+        def deg(a: dict) -> dict:
+            ok = a["valid"]
+            return {k: np.where(ok, a[k], np.nan) for k in _ANGLES}
+
+        nominal = deg(cu.row_angles(self.cal, *args, lamps=lamps))
+        drawn = [deg(cu.row_angles(self.cal, *args, K=K, dist=d, poses=p, lamps=lamps)) for K, d, p in self.draws]
+        return nominal, drawn
 
 
 def _by_param(x, mask) -> dict:
@@ -96,107 +184,213 @@ def _accumulator(b: dict):
     return add
 
 
-def design_budget(rig, materials, rotations=None, led_ids=None, scale: float = 0.25, noise: str = "hdr",
-                  fisher_rows: int = 20000, gain_rel: float = GAIN_REL, lamp_std_mm: float | None = None,
-                  pose_rot_deg: float | None = None, pose_t_mm: float | None = None, albedo_u: float | None = None,
-                  angular_u: float | None = None, led_aperture: float | None = None) -> dict[str, dict]:
+#: Albedo of the white reference where the rig file states none (thesis 4.4; spec/rig-facts.toml
+#: ``[reference] assumed_albedo``).
+REFERENCE_ALBEDO = 0.8
+
+
+def ratio_sigma(nm, f, cos_in, dist_mm, reference_f: float) -> np.ndarray:
+    """Standard deviation of a BRDF value that is the sample's HDR value over the reference's
+    at the same pixel and lamp (thesis eq. 4.78): the relative variances add,
+    ``s = f sqrt((sigma(f) / f)^2 + (sigma(f_ref) / f_ref)^2)``, ``f_ref`` the reference's
+    BRDF (albedo / pi) and ``nm`` a noise model of :mod:`glossrig.core.design.fisher`
+    (inf where either value has no usable exposure; NaN where ``f`` is 0)."""
+    f = np.asarray(f, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel_s = nm.sigma(f, cos_in, dist_mm) / f
+        rel_r = nm.sigma(np.full(f.shape, reference_f), cos_in, dist_mm) / reference_f
+    return f * np.hypot(rel_s, rel_r)
+
+
+def _sensor_only(nm):
+    """The noise model without its per-pixel LED term: what ``glossrig extract`` writes as a
+    row's variance (the HDR merge's sensor noise) and so what the fit weights by."""
+    return replace(nm, led_rel=0.0) if isinstance(nm, fi.HdrNoise) else nm
+
+
+def design_budget(rig, materials, **kw) -> dict[str, dict]:
     """Per material label: ``{"params", "components": {component: {param: u}}, "combined":
     {param: u}, "relative": {param: u / |param| (rotation: radians)}, "stated": the error
-    model}`` (module docstring)."""
+    model}`` (module docstring); keywords as :func:`budget_and_bound`."""
+    return budget_and_bound(rig, materials, **kw)[0]
+
+
+def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float = 0.25, noise: str = "hdr",
+                     fisher_rows: int = 20000, gain_rel: float = GAIN_REL, lamp_std_mm: float | None = None,
+                     pose_rot_deg: float | None = None, pose_t_mm: float | None = None,
+                     albedo_u: float | None = None, angular_u: float | None = None,
+                     led_aperture: float | None = None, camera_views=None, intrinsics_draws: int = 16,
+                     seed: int = 0, bound_gain_rel: float = 0.0) -> tuple[dict[str, dict], dict[str, fi.ExpectedError]]:
+    """:func:`design_budget`'s budget and, from the same walk over the design's pixels, the
+    noise-only Cramer-Rao bound of each material: ``{label: ExpectedError}`` equal to
+    :func:`glossrig.core.design.placement.design_errors` with ``gain_rel=bound_gain_rel``
+    (the same rows, noise model and :func:`~glossrig.core.design.fisher.gain_marginal_information`)."""
     from glossrig.core.calibration.lamps import LAMP_STD_MM
     from glossrig.core.design.placement import _rows_for
-    from glossrig.core.fitting.calibration_uncertainty import ALBEDO_ANGULAR_U_REL, ALBEDO_U_REL
+    from glossrig.core.fitting.calibration_uncertainty import ALBEDO_ANGULAR_U_REL, ALBEDO_U_REL, rotation_from_vector
+    from glossrig.core.fitting.fit import peak_weight
     from glossrig.core.fitting.uncertainty import DEFAULT_LED_APERTURE, blur_effect, led_slope_variance
     from glossrig.core.models.ward import ward_geometry, ward_parts
 
     lamp_std = LAMP_STD_MM if lamp_std_mm is None else float(lamp_std_mm)
-    pose_rot_deg = POSE_ROT_DEG * POSE_SCALE / scale if pose_rot_deg is None else float(pose_rot_deg)
-    pose_t_mm = POSE_T_MM * POSE_SCALE / scale if pose_t_mm is None else float(pose_t_mm)
+    rot0, t0 = (POSE_ROT_DEG, POSE_T_MM) if camera_views is None else (POSE_NOISE_ROT_DEG, POSE_NOISE_T_MM)
+    pose_rot_deg = rot0 * POSE_SCALE / scale if pose_rot_deg is None else float(pose_rot_deg)
+    pose_t_mm = t0 * POSE_SCALE / scale if pose_t_mm is None else float(pose_t_mm)
     albedo_u = ALBEDO_U_REL if albedo_u is None else float(albedo_u)
     angular_u = ALBEDO_ANGULAR_U_REL if angular_u is None else float(angular_u)
     aperture = DEFAULT_LED_APERTURE if led_aperture is None else float(led_aperture)
     rotations = [float(r) for r in (rig.sample_rotations if rotations is None else rotations)]
     led_ids = list(rig.led_ids() if led_ids is None else led_ids)
+    ref_albedo = rig.reference.assumed_albedo if rig.reference is not None else REFERENCE_ALBEDO
+    ref_f = ref_albedo / math.pi
     px = cov.pixel_geometry(rig, scale)
     nm = fi.noise_model(noise, rig)
+    nm_w = _sensor_only(nm)
     rot_rad = math.radians(pose_rot_deg)
-    moves = [(f"pose_rot{k}", _small_rotation(rot_rad * e), None) for k, e in enumerate(np.eye(3))] + \
+    moves = [(f"pose_rot{k}", rotation_from_vector(rot_rad * e), None) for k, e in enumerate(np.eye(3))] + \
             [(f"pose_t{k}", None, pose_t_mm * e) for k, e in enumerate(np.eye(3))]
-    out = {}
-    for label, p in materials:
-        A = np.zeros((5, 5))
-        # source -> (component, standard deviation, accumulated J' W df)
-        b: dict[str, list] = {}
-
-        add = _accumulator(b)
-
-        n_rows = 0
-        # the reference's angular variation (module docstring): sum J' W f g and sum J' W f
-        # with the rows' mean of g = 1 - cos theta, for theta_in and theta_out
-        ang_fg, ang_f, ang_g, ang_w = np.zeros((2, 5)), np.zeros(5), np.zeros(2), 0.0
-        for i in led_ids:
-            lamp = np.asarray(rig.led(i).position, float)
-            a_all = cov.direction_angles(px, lamp, half=True)
+    intr = IntrinsicsDraws(rig, px, camera_views, intrinsics_draws, seed) if camera_views is not None else None
+    acc = {label: _Sums() for label, _ in materials}
+    for i in led_ids:
+        lamp = np.asarray(rig.led(i).position, float)
+        a_all = cov.direction_angles(px, lamp, half=True)
+        a_intr = intr.angles(i) if intr is not None else None
+        for label, p in materials:
+            s = acc[label]
             rows, w = _rows_for(a_all, a_all["lit"], p, fisher_rows, 3000)
             if rows.size == 0:
                 continue
             sub = px.subset(rows)
             a = {k: v[rows] for k, v in a_all.items()}
+            # eq. 4.82's weight depends on differences of the angles: the same at every rotation
+            m = peak_weight(*(np.radians(a[k]) for k in ("theta_in", "phi_in", "theta_out", "phi_out")))
             moved_lamps = [cov.direction_angles(sub, lamp + lamp_std * e, half=True) for e in np.eye(3)]
-            moved_poses = [(name, cov.direction_angles(_moved(sub, R, t), lamp, half=True))
-                           for name, R, t in moves]
+            moved_poses = [(name, cov.direction_angles(_moved(sub, R, t), lamp, half=True)) for name, R, t in moves]
+            add = _accumulator(s.b)
             for r in rotations:
                 f, J = _ward(a, r, p)
-                sigma = nm.sigma(f, a["cos_in"], a["dist_in"])
-                W = np.where(np.isfinite(sigma) & (sigma > 0), w / np.where(sigma > 0, sigma, 1.0) ** 2, 0.0)
-                JW = J * W[:, None]
-                A += J.T @ JW
-                n_rows += int(round(w.sum()))
+                s.info += fi.gain_marginal_information(J, nm.sigma(f, a["cos_in"], a["dist_in"]), f, bound_gain_rel, w)
+                s_tab = ratio_sigma(nm_w, f, a["cos_in"], a["dist_in"], ref_f)
+                ok = np.isfinite(s_tab) & (s_tab > 0)
+                mult = np.where(ok, m / np.where(ok, s_tab, 1.0), 0.0)
+                A_b, B_b = fi.sandwich_parts(J, ratio_sigma(nm, f, a["cos_in"], a["dist_in"], ref_f), mult, w)
+                s.A += A_b
+                s.B += B_b
+                JW = J * (w * mult ** 2)[:, None]
+                s.n_rows += int(round(w.sum()))
                 add(f"gain_{i}_{r:g}", "model", gain_rel, JW.T @ f)
                 for k, am in enumerate(moved_lamps):
                     add(f"lamp_{i}_{k}", "calibration", 1.0, JW.T @ (_ward(am, r, p)[0] - f))
                 for name, am in moved_poses:
                     add(f"{name}_{r:g}", "calibration", 1.0, JW.T @ (_ward(am, r, p)[0] - f))
-                ang_f += JW.T @ f
+                if a_intr is not None:
+                    # the refits' rows thinned evenly to INTRINSICS_ROWS in all, each standing for the rest
+                    step = max(1, math.ceil(rows.size * len(led_ids) * len(rotations) / INTRINSICS_ROWS))
+                    sw = (w / np.where(ok, s_tab, 1.0) ** 2 * ok)[::step] * step
+                    s.add_intrinsics_rows(a_intr, rows[::step], r, p, sw)
+                s.ang_f += JW.T @ f
                 for k, c in enumerate((a["cos_in"], a["cos_out"])):
-                    ang_fg[k] += JW.T @ (f * (1.0 - c))
-                    ang_g[k] += float(w @ (1.0 - c))
-                ang_w += float(w.sum())
+                    s.ang_fg[k] += JW.T @ (f * (1.0 - c))
+                    s.ang_g[k] += float(w @ (1.0 - c))
+                s.ang_w += float(w.sum())
                 if aperture > 0:
-                    th = {k: np.radians(a[k]) for k in ("theta_in", "theta_out", "theta_h")}
-                    th["phi_in"], th["phi_out"] = np.radians(a["phi_in"]), np.radians(a["phi_out"])
+                    th = {k: np.radians(a[k]) for k in ("theta_in", "theta_out", "theta_h", "phi_in", "phi_out")}
                     geo = ward_geometry(th["theta_in"], th["theta_out"], th["theta_h"],
                                         np.radians(np.mod(a["phi_h"] - r, 360.0)))
                     x_int = np.array([p.rho_d, p.rho_s, math.log(p.alpha_x), math.log(p.alpha_y), p.lobe_rotation])
                     _, parts = ward_parts(geo, x_int, log_alpha=True)
                     add("led_aperture", "footprint", 1.0, JW.T @ blur_effect(parts, x_int,
                                                                             led_slope_variance(th, aperture)))
+    stated = {"noise": nm.describe(), "estimator": "eq. 4.81 with residual multipliers m / s: m the mirror peak "
+              "weight of eq. 4.82, s the sensor noise of the sample and the reference (the table's weight)",
+              "reference_albedo": ref_albedo, "gain_rel_per_led_rotation": gain_rel,
+              "lamp_std_mm_per_axis": lamp_std, "pose_rot_deg_per_axis": pose_rot_deg,
+              "pose_t_mm_per_axis": pose_t_mm, "albedo_u_rel": albedo_u, "albedo_angular_u_rel": angular_u,
+              "led_aperture_rad": aperture,
+              "intrinsics": (f"{intrinsics_draws} draws of the camera calibration (parametric bootstrap of its "
+                             f"{len(camera_views.rvecs)} views, reprojection RMS {camera_views.rms_px:g} px), poses "
+                             "re-solved from the markers" if camera_views is not None else
+                             "not drawn (no camera calibration views given): carried by the pose figures")}
+    out, bound = {}, {}
+    for label, p in materials:
+        s = acc[label]
         mask = fi.identifiable(p)
-        C = fi.covariance_from_information(A, mask)
+        bound[label] = fi.summarise(p, fi.covariance_from_information(s.info, mask), s.n_rows)
+        C = fi.covariance_from_information(s.A, mask)
         Ci = np.where(np.isfinite(C), C, 0.0)
         var = {c: np.zeros(5) for c in COMPONENTS}
-        var["noise"] = np.diag(C).copy()
+        var["noise"] = np.diag(fi.sandwich_covariance(s.A, s.B, mask)).copy()
         # the multiplier 1 + h (g - mean g) has the albedo's level taken out
         for k in range(2):
-            vec = ang_fg[k] - (ang_g[k] / ang_w if ang_w > 0 else 0.0) * ang_f
+            vec = s.ang_fg[k] - (s.ang_g[k] / s.ang_w if s.ang_w > 0 else 0.0) * s.ang_f
             var["calibration"] += (angular_u * (Ci @ vec)) ** 2
-        for comp, sd, vec in b.values():
+        for comp, sd, vec in s.b.values():
             var[comp] += (sd * (Ci @ vec)) ** 2
-        scale_p = fi.error_scale(p)
+        if s.intr_rows:
+            var["calibration"] += s.intrinsics_variance(p)
         var["calibration"] += (albedo_u * np.array([p.rho_d, p.rho_s, 0.0, 0.0, 0.0])) ** 2
-        comps = {c: _by_param(np.sqrt(v), mask) for c, v in var.items()}
         comb = np.sqrt(sum(var.values()))
-        out[label] = {
-            "params": p.as_dict(), "n_samples": n_rows,
-            "components": comps,
-            "combined": _by_param(comb, mask),
-            "relative": _by_param(comb / scale_p, mask),
-            "stated": {"noise": nm.describe(), "gain_rel_per_led_rotation": gain_rel,
-                       "lamp_std_mm_per_axis": lamp_std, "pose_rot_deg_per_axis": pose_rot_deg,
-                       "pose_t_mm_per_axis": pose_t_mm, "albedo_u_rel": albedo_u, "albedo_angular_u_rel": angular_u,
-                       "led_aperture_rad": aperture},
-        }
-    return out
+        out[label] = {"params": p.as_dict(), "n_samples": s.n_rows,
+                      "components": {c: _by_param(np.sqrt(v), mask) for c, v in var.items()},
+                      "combined": _by_param(comb, mask), "relative": _by_param(comb / fi.error_scale(p), mask),
+                      "stated": stated}
+    return out, bound
+
+
+class _Sums:
+    """One material's sums over the design's rows (:func:`budget_and_bound`)."""
+
+    def __init__(self) -> None:
+        self.A, self.B, self.info = np.zeros((5, 5)), np.zeros((5, 5)), np.zeros((5, 5))
+        self.b: dict[str, list] = {}           # source -> [component, standard deviation, sum W^2 J' df]
+        self.n_rows = 0
+        # the reference's angular variation (module docstring): sum W^2 J' f g and W^2 J' f with
+        # the rows' mean of g = 1 - cos theta, for theta_in and theta_out
+        self.ang_fg, self.ang_f, self.ang_g, self.ang_w = np.zeros((2, 5)), np.zeros(5), np.zeros(2), 0.0
+        # the intrinsics draws' rows (IntrinsicsDraws): [(nominal angles, values, weights, drawn angles per draw)]
+        self.intr_rows: list[tuple] = []
+
+    def add_intrinsics_rows(self, a_intr, rows, rotation: float, p: WardParams, table_weight) -> None:
+        """Keep one (LED, rotation)'s rows for :meth:`intrinsics_variance`: the nominal and
+        drawn angles (azimuths turned by the sample rotation, thesis eq. 4.62), the nominal
+        data (the point model of ``p``) and the table's weights (pixel count / s^2)."""
+        nominal, drawn = a_intr
+        r = np.radians(rotation)
+
+        def take(a):
+            out = {k: a[k][rows] for k in _ANGLES}
+            for k in ("phi_in", "phi_out", "phi_h"):
+                out[k] = np.mod(out[k] - r, 2 * np.pi)
+            return out
+
+        nom = take(nominal)
+        y = _ward({k: np.degrees(v) for k, v in nom.items()}, 0.0, p)[0]
+        self.intr_rows.append((nom, y, table_weight, [take(a) for a in drawn]))
+
+    def intrinsics_variance(self, p: WardParams) -> np.ndarray:
+        """Variance of the fitted parameters over the intrinsics draws (GUM-S1): the nominal
+        data refitted at each draw's angles by the pipeline's weighted least squares (the
+        Gauss-Newton refit of :mod:`glossrig.core.fitting.calibration_uncertainty`, eq.
+        4.81-4.82, warm-started), minus the same refit at the nominal angles; a row a draw
+        loses (its ray misses, a direction below the horizon) is left out of that refit. Not
+        linearised: at a calibration's noise the drawn angle errors (~0.1 degree) move rho_s
+        and the alphas at second order as much as at first (a blur-like bias), which a
+        linearisation misses (tests/test_design_budget.py)."""
+        from glossrig.core.fitting.calibration_uncertainty import _refit, _reported
+
+        nom = {k: np.concatenate([e[0][k] for e in self.intr_rows]) for k in _ANGLES}
+        y = np.concatenate([e[1] for e in self.intr_rows])
+        sw = np.concatenate([e[2] for e in self.intr_rows])
+        ok0 = np.isfinite(nom["theta_in"]) & np.isfinite(y) & (sw > 0)
+        x0 = np.array([p.rho_d, p.rho_s, math.log(p.alpha_x), math.log(p.alpha_y), p.lobe_rotation])
+        base = _refit({k: v[ok0] for k, v in nom.items()}, y[ok0], sw[ok0], x0, "mirror", None)
+        shifts = []
+        for d in range(len(self.intr_rows[0][3])):
+            ang = {k: np.concatenate([e[3][d][k] for e in self.intr_rows]) for k in _ANGLES}
+            ok = ok0 & np.isfinite(ang["theta_in"])
+            x = _refit({k: v[ok] for k, v in ang.items()}, y[ok], sw[ok], base, "mirror", None)
+            shifts.append(_reported(x, x0) - _reported(base, x0))
+        return np.asarray(shifts).var(axis=0, ddof=1)
 
 
 def budget_text(budget: dict) -> str:

@@ -266,6 +266,25 @@ def covariance_from_information(I: np.ndarray, mask: np.ndarray | None = None, p
     return cov
 
 
+def sandwich_covariance(A: np.ndarray, B: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """``A^-1 B A^-1`` over the ``mask`` parameters (the others: inf on the diagonal, NaN
+    off it), the asymptotic covariance of a least-squares estimator whose weights are not
+    the inverse variances (:func:`sandwich_parts`; Huber 1967); ``A`` singular: ``A``'s
+    inverse as :func:`covariance_from_information` gives it (inf on the diagonal)."""
+    n = np.asarray(A).shape[0]
+    mask = np.ones(n, bool) if mask is None else np.asarray(mask, bool)
+    Ai = covariance_from_information(A, mask)
+    if not np.all(np.isfinite(np.diag(Ai)[mask])):
+        return Ai
+    Ai = np.where(np.isfinite(Ai), Ai, 0.0)
+    cov = Ai @ np.asarray(B, float) @ Ai
+    cov[~mask, :] = np.nan
+    cov[:, ~mask] = np.nan
+    for i in np.flatnonzero(~mask):
+        cov[i, i] = np.inf
+    return cov
+
+
 def weak_prior(p: WardParams, factor: float = 10.0) -> np.ndarray:
     """A diagonal information matrix worth a standard deviation of ``factor``
     times each parameter (``factor`` radians for the rotation): negligible next
@@ -324,16 +343,7 @@ def expected_errors(theta_in, theta_out, theta_h, phi_h, cos_in, dist_mm, p: War
             raise InputError("weighting 'mirror' needs phi_in and phi_out")
         w = peak_weight(theta_in, phi_in, theta_out, phi_out, mode="mirror")
         A, B = sandwich_parts(J, sigma, w, weight)
-        Ai = covariance_from_information(A, m)
-        if not np.all(np.isfinite(np.diag(Ai)[m])):
-            cov = Ai
-        else:
-            Ai = np.where(np.isfinite(Ai), Ai, 0.0)
-            cov = Ai @ B @ Ai
-            cov[~m, :] = np.nan
-            cov[:, ~m] = np.nan
-            for i in np.flatnonzero(~m):
-                cov[i, i] = np.inf
+        cov = sandwich_covariance(A, B, m)
     else:
         raise InputError(f"weighting must be 'fisher' or 'mirror', got {weighting!r}")
     n = int(np.count_nonzero(np.isfinite(sigma)))

@@ -64,8 +64,6 @@ from glossrig.core.atomic import atomic_write
 from glossrig.core.design import coverage as cov
 from glossrig.core.design import fisher as fi
 from glossrig.core.errors import InputError
-# the sweep's runners (one process, or Dask), re-exported for the design verb
-from glossrig.core.runners import DaskRunner, LocalRunner, make_runner  # noqa: F401
 from glossrig.core.rig import Led
 from glossrig.core.models.ward import WardParams, ward_envelope, ward_geometry
 

@@ -76,7 +76,7 @@ from glossrig.core.errors import InputError
 PARAM_NAMES = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
 SOURCES = ("intrinsics", "poses", "lamps", "albedo")
 #: Per holder axis standard uncertainty (mm) of a lamp position whose file states none
-#: (what :func:`glossrig.core.calibration.lamps.calibrate_lamps` states, 0.5 mm).
+#: (0.5 mm; :func:`glossrig.core.calibration.lamps.calibrate_lamps` states each lamp's own).
 LAMP_STD_MM = _LAMP_STD_MM
 #: Relative standard uncertainty of the white reference's albedo (type B: the thesis assumes
 #: 0.8 for white paper, spec/rig-facts.toml [reference]; a paper's albedo is known to a few per cent).
@@ -166,7 +166,6 @@ class CalibrationInputs:
     K: np.ndarray
     dist: np.ndarray
     size: tuple[int, int]
-    std_K: dict                          # fx, fy, cx, cy -> standard deviation (px)
     lamps: dict[int, np.ndarray]
     lamps_std: dict[int, np.ndarray]
     radius: float
@@ -212,12 +211,9 @@ def load_inputs(camera_json, lamps_json, capture_dir, rotations) -> CalibrationI
     from glossrig.core.toml_input import read_json
 
     cam = load_camera(camera_json)
-    cdoc = read_json(Path(camera_json), "camera calibration")
-    std = cam.meta.get("std") if isinstance(cam.meta, dict) else None
-    if not std:
-        std = (cdoc.get("std") or {})
-    lamps = load_lamps(lamps_json)
-    ldoc = read_json(Path(lamps_json), "lamp file")
+    # lamps_json None: no lamps (calibrate_lamps draws the geometry its lamps come from)
+    lamps = load_lamps(lamps_json) if lamps_json is not None else {}
+    ldoc = read_json(Path(lamps_json), "lamp file") if lamps_json is not None else {}
     man = load_manifest(capture_dir)
     rig = load_rig(man.rig_path())
     poses = {}
@@ -225,15 +221,17 @@ def load_inputs(camera_json, lamps_json, capture_dir, rotations) -> CalibrationI
         res = calibrate_capture(capture_dir, camera_json, rotation=float(rot))
         poses[float(rot)] = rotation_poses(res, rig)
     return CalibrationInputs(K=cam.K, dist=cam.dist, size=(int(cam.image_size[0]), int(cam.image_size[1])),
-                             std_K={k: float(std.get(k, 0.0) or 0.0) for k in ("fx", "fy", "cx", "cy")},
                              lamps=lamps, lamps_std=lamp_std(ldoc), radius=rig.cylinder_radius,
                              height=rig.sample_height, poses=poses,
                              sources_files={"camera": str(camera_json), "lamps": str(lamps_json),
                                             "capture": str(capture_dir)},
-                             camera_views=CameraViews.from_camera_doc(cdoc))
+                             camera_views=CameraViews.from_camera_doc(cam.meta))
 
 
-def _small_rotation(w: np.ndarray) -> np.ndarray:
+def rotation_from_vector(w) -> np.ndarray:
+    """The rotation matrix of rotation vector ``w`` (axis times angle, radians; Rodrigues'
+    formula, ``cv2.Rodrigues``): the project's one conversion for the drawn pose errors
+    (here and :mod:`glossrig.core.design.error_budget`)."""
     import cv2
 
     return cv2.Rodrigues(np.asarray(w, float).reshape(3, 1))[0]
@@ -259,7 +257,7 @@ def _draw_pose(p: dict, K, dist, rng, poses_on: bool, intr_on: bool):
             t = dR @ t + (tv.ravel() - dR @ p["t_pnp"])
     if poses_on:
         w = np.radians(p["std_rot_deg"]) * rng.standard_normal(3)
-        R = R @ _small_rotation(w)                 # about the marker's own axes (poses.refine_pose_edges)
+        R = R @ rotation_from_vector(w)                 # about the marker's own axes (poses.refine_pose_edges)
         t = t + p["std_t_mm"] * rng.standard_normal(3)
     return R, t
 
@@ -341,13 +339,17 @@ def intrinsics_drawn(cal: CalibrationInputs, sources=SOURCES) -> bool:
     return "intrinsics" in sources and cal.camera_views is not None
 
 
-def _refit(ang, y, sw, x0, weighting, clip, max_iter: int = 12):
+def _refit(ang, y, sw, x0, weighting, clip, max_iter: int = 12, fp=None):
     """The point model (eq. 4.79) refitted to ``y`` at the angles ``ang`` by weighted least
     squares (eq. 4.81-4.82), from ``x0`` (solver parameters, log alphas): Gauss-Newton with
     step halving, within Table 4.2's bounds. The draws move the optimum by little, so a
     few steps from a nearby start converge (a trust-region solver's bookkeeping cost 10
-    times as much here)."""
+    times as much here). With ``fp`` (a :class:`~glossrig.core.fitting.footprint_model.SampleFootprint`
+    of these rows) the model is eq. 4.79 averaged over each row's footprint, as ``glossrig
+    fit`` fits it: for a lobe about as narrow as a footprint the point model describes
+    other parameters altogether, and its sensitivity to the calibration is not the fit's."""
     from glossrig.core.fitting.fit import ALPHA_MIN, peak_weight
+    from glossrig.core.fitting.footprint_model import footprint_eval
     from glossrig.core.models.ward import ALPHA_MAX, ward_geometry, ward_param_jacobian, ward_parts
 
     W = np.sqrt(sw) * peak_weight(ang["theta_in"], ang["phi_in"], ang["theta_out"], ang["phi_out"],
@@ -359,13 +361,16 @@ def _refit(ang, y, sw, x0, weighting, clip, max_iter: int = 12):
 
     def residual(x):
         f, parts = ward_parts(geo, x, log_alpha=True)
+        if fp is not None:
+            f = footprint_eval(geo, fp, x, log_alpha=True)
         return W * ((f if clip is None else np.minimum(f, clip)) - yc), f, parts
 
     x = np.clip(np.asarray(x0, float), lb, ub)
     r, f, parts = residual(x)
     cost = float(r @ r)
     for _ in range(max_iter):
-        J = ward_param_jacobian(geo, x, parts, log_alpha=True) * W[:, None]
+        J = (ward_param_jacobian(geo, x, parts, log_alpha=True) if fp is None
+             else footprint_eval(geo, fp, x, jac=True, log_alpha=True)[1]) * W[:, None]
         if clip is not None:
             J[f >= clip] = 0.0
         norms = np.sqrt(np.einsum("ij,ij->j", J, J))
@@ -399,11 +404,14 @@ def _reported(x, x_ref) -> np.ndarray:
 
 def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: int = 24, max_rows: int = 20_000,
                           seed: int = 0, weighting: str = "mirror", clip: float | None = None,
-                          use_weight_column: bool = True, sources=SOURCES) -> dict:
+                          use_weight_column: bool = True, sources=SOURCES, footprint: bool = False) -> dict:
     """The calibration component (module docstring): ``{channel: {param: {"u": u, "dof":
     n_draws - 1}}}`` for the channels of ``fits`` (channel -> WardFit or WardParams, in
     canonical form), plus ``"_meta"`` (draws, rows, sources, shift samples). ``df``: the
-    samples table (``u, v, led, rotation``, angles, ``r, g, b``, optionally ``weight``)."""
+    samples table (``u, v, led, rotation``, angles, ``r, g, b``, optionally ``weight``).
+    ``footprint``: refit the footprint-averaged model (as ``glossrig fit`` does by
+    default; each row's footprint from the whole table's neighbouring blocks, held at
+    the nominal geometry: it moves with the calibration at second order only)."""
     from glossrig.core.fitting.fit import channel_values
     from glossrig.core.models.ward import WardParams
 
@@ -432,10 +440,15 @@ def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: in
     nominal = row_angles(cal, u, v, led, rot)
     ang_dev = _angle_check(nominal, sub)
     ok0 = nominal["valid"]
+    fps = _footprints(df, rows, fits, nominal, x0) if footprint else {}
     base, start = {}, {}
     for c in fits:
         okc = ok0 & fin[c]
         start[c] = _refit(_take(nominal, okc), ys[c][okc], sw[okc], x0[c], weighting, clip)
+        fpc = fps.pop(c, None)
+        if fpc is not None and _point_model_departs(_reported(start[c], x0[c]), x0[c]):
+            fps[c] = fpc
+            start[c] = _refit(_take(nominal, okc), ys[c][okc], sw[okc], x0[c], weighting, clip, fp=fpc.take(okc))
         base[c] = _reported(start[c], x0[c])
     shifts: dict[str, list] = {c: [] for c in fits}
     for _ in range(n_draws):
@@ -448,25 +461,68 @@ def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: in
             mult = scale * (1 + hi * (gi - gi.mean()) + ho * (go - go.mean()))
         a = _take(ang, ok)
         for c in fits:
+            fpc = fps.get(c)
             if fin[c][ok].all():
-                x = _refit(a, ys[c][ok] * mult, sw[ok], start[c], weighting, clip)
+                x = _refit(a, ys[c][ok] * mult, sw[ok], start[c], weighting, clip,
+                           fp=None if fpc is None else fpc.take(ok))
             else:
                 keep = fin[c][ok]
                 x = _refit({k: v[keep] for k, v in a.items()}, (ys[c][ok] * mult)[keep], sw[ok][keep], start[c],
-                           weighting, clip)
+                           weighting, clip, fp=None if fpc is None else fpc.take(np.flatnonzero(ok)[keep]))
             shifts[c].append(_reported(x, x0[c]) - base[c])
     out: dict = {}
     for c in fits:
         S = np.asarray(shifts[c])
         u_ = S.std(axis=0, ddof=1)
         out[c] = {name: {"u": float(u_[i]), "dof": float(n_draws - 1)} for i, name in enumerate(PARAM_NAMES)}
-    out["_meta"] = {"method": "Monte Carlo over calibration draws (GUM-S1), warm-started point-model refits",
+    model = (f"footprint-averaged refits for {', '.join(fps)} (the point model departs from their lobes by more than "
+             f"{FOOTPRINT_REFIT_DEPARTURE:.0%}), point-model refits otherwise" if fps else "point-model refits")
+    out["_meta"] = {"method": f"Monte Carlo over calibration draws (GUM-S1), warm-started {model}",
                     "n_draws": int(n_draws), "rows": int(rows.size), "sources": list(sources), "seed": int(seed),
                     "intrinsics_drawn": intrinsics_drawn(cal, sources),
                     "nominal_angle_max_dev_rad": ang_dev, "files": dict(cal.sources_files),
-                    "stated": {"intrinsics_std_px": cal.std_K,
+                    "stated": {"intrinsics_reprojection_rms_px":
+                               None if cal.camera_views is None else cal.camera_views.rms_px,
                                "lamps_std_mm": {str(k): s.tolist() for k, s in cal.lamps_std.items()},
                                "albedo_u_rel": cal.albedo_u, "albedo_angular_u_rel": cal.angular_u}}
+    return out
+
+
+#: the point model's own optimum departing from the footprint fit's lobe (rho_s, alpha_x or
+#: alpha_y) by more than this: the draws refit the footprint-averaged model (it costs about
+#: twice as much). Below it the lobe is wider than a footprint and the point model's
+#: sensitivity to the calibration equals the footprint model's to that relative order
+#: (the bias itself cancels in the draws' differences, module docstring).
+FOOTPRINT_REFIT_DEPARTURE = 0.05
+
+
+def _point_model_departs(point_reported: np.ndarray, x0: np.ndarray) -> bool:
+    """Whether the nominal point-model refit (reported form) departs from the fit's lobe
+    ``x0`` (solver form) by more than :data:`FOOTPRINT_REFIT_DEPARTURE`."""
+    lobe = np.array([x0[1], math.exp(x0[2]), math.exp(x0[3])])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.abs(point_reported[1:4] / lobe - 1)
+    return bool(np.any(~np.isfinite(rel)) or np.max(rel) > FOOTPRINT_REFIT_DEPARTURE)
+
+
+def _footprints(df, rows, fits: dict, nominal: dict, x0: dict) -> dict:
+    """Each channel's :class:`~glossrig.core.fitting.footprint_model.SampleFootprint` of the
+    subsampled ``rows``, with the pixel quadrature its nominal lobe needs (as ``fit_ward``
+    chooses it); empty where the table has no footprint (not on extract's block grid)."""
+    from glossrig.core.fitting.footprint_model import sample_footprint, table_jacobian
+    from glossrig.core.models.ward import ward_geometry
+
+    Jt = table_jacobian(df)
+    if Jt is None:
+        return {}
+    base = sample_footprint(np.asarray(Jt)[rows])
+    ok = nominal["valid"]
+    geo = ward_geometry(nominal["theta_in"][ok], nominal["theta_out"][ok], nominal["theta_h"][ok],
+                        nominal["phi_h"][ok])
+    out = {}
+    for c in fits:
+        fp = base.for_channel(c)
+        out[c] = fp.with_orders(fp.take(ok).orders_for(geo, x0[c], log_alpha=True))
     return out
 
 
