@@ -41,7 +41,8 @@ def rigdata(tmp_path_factory):
     glossrig("calibrate", "camera", d / "checker", "--out", d / "camera.json")
     simulate(d / "specular", "transparency_sheet", 5, leds="9")
     glossrig("calibrate", "lamps", d / "specular", "--camera", d / "camera.json", "--out", d / "lamps.json",
-             "--no-progress")
+             "--no-progress", "--draws", 4)   # positions only here: the stated uncertainty's
+    # draws (default 24) are tested in test_lamps_uncertainty.py
     simulate(d / "reference", "lambert:0.8", 6, leds="9")
     simulate(d / "sample", "ward:rho_d=0.06,rho_s=0.05,alpha_x=0.09,alpha_y=0.05,lobe_rotation=0.6", 7, leds="9")
     return d
