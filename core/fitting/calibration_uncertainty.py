@@ -440,15 +440,19 @@ def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: in
     nominal = row_angles(cal, u, v, led, rot)
     ang_dev = _angle_check(nominal, sub)
     ok0 = nominal["valid"]
-    fps = _footprints(df, rows, fits, nominal, x0) if footprint else {}
+    fps: dict = {}              # the channels whose draws refit the footprint model, and their footprints
+    table_fp = None
     base, start = {}, {}
     for c in fits:
         okc = ok0 & fin[c]
         start[c] = _refit(_take(nominal, okc), ys[c][okc], sw[okc], x0[c], weighting, clip)
-        fpc = fps.pop(c, None)
-        if fpc is not None and _point_model_departs(_reported(start[c], x0[c]), x0[c]):
-            fps[c] = fpc
-            start[c] = _refit(_take(nominal, okc), ys[c][okc], sw[okc], x0[c], weighting, clip, fp=fpc.take(okc))
+        if footprint and _point_model_departs(_reported(start[c], x0[c]), x0[c]):
+            if table_fp is None:                     # the table's footprints, once, when first needed
+                table_fp = _table_footprint(df, rows)
+            if table_fp is not False:
+                fps[c] = _channel_footprint(table_fp, c, nominal, x0[c])
+                start[c] = _refit(_take(nominal, okc), ys[c][okc], sw[okc], x0[c], weighting, clip,
+                                  fp=fps[c].take(okc))
         base[c] = _reported(start[c], x0[c])
     shifts: dict[str, list] = {c: [] for c in fits}
     for _ in range(n_draws):
@@ -505,25 +509,26 @@ def _point_model_departs(point_reported: np.ndarray, x0: np.ndarray) -> bool:
     return bool(np.any(~np.isfinite(rel)) or np.max(rel) > FOOTPRINT_REFIT_DEPARTURE)
 
 
-def _footprints(df, rows, fits: dict, nominal: dict, x0: dict) -> dict:
-    """Each channel's :class:`~glossrig.core.fitting.footprint_model.SampleFootprint` of the
-    subsampled ``rows``, with the pixel quadrature its nominal lobe needs (as ``fit_ward``
-    chooses it); empty where the table has no footprint (not on extract's block grid)."""
+def _table_footprint(df, rows):
+    """The :class:`~glossrig.core.fitting.footprint_model.SampleFootprint` of the subsampled
+    ``rows`` (each row's from the whole table's neighbouring blocks), or False where the table
+    has none (not on extract's grid of Bayer blocks)."""
     from glossrig.core.fitting.footprint_model import sample_footprint, table_jacobian
-    from glossrig.core.models.ward import ward_geometry
 
     Jt = table_jacobian(df)
-    if Jt is None:
-        return {}
-    base = sample_footprint(np.asarray(Jt)[rows])
+    return False if Jt is None else sample_footprint(np.asarray(Jt)[rows])
+
+
+def _channel_footprint(table_fp, channel: str, nominal: dict, x0c):
+    """``table_fp`` for ``channel``'s read kernel, with the pixel quadrature its nominal lobe
+    ``x0c`` needs (as ``fit_ward`` chooses it)."""
+    from glossrig.core.models.ward import ward_geometry
+
     ok = nominal["valid"]
     geo = ward_geometry(nominal["theta_in"][ok], nominal["theta_out"][ok], nominal["theta_h"][ok],
                         nominal["phi_h"][ok])
-    out = {}
-    for c in fits:
-        fp = base.for_channel(c)
-        out[c] = fp.with_orders(fp.take(ok).orders_for(geo, x0[c], log_alpha=True))
-    return out
+    fp = table_fp.for_channel(channel)
+    return fp.with_orders(fp.take(ok).orders_for(geo, x0c, log_alpha=True))
 
 
 def _take(ang: dict, ok) -> dict:
