@@ -102,10 +102,10 @@ class DaskRunner:
 def make_runner(scheduler: str | None = None, workers: int = 2) -> LocalRunner | DaskRunner:
     """An existing cluster at ``scheduler``; else one process for ``workers == 0``, else a
     new local Dask cluster of ``workers`` processes."""
-    if scheduler:
-        return DaskRunner(address=scheduler)
     if workers < 0:
         raise InputError(f"--workers must be >= 0, got {workers}")
+    if scheduler:
+        return DaskRunner(address=scheduler)
     if workers == 0:
         return LocalRunner()
     return DaskRunner(workers=workers)

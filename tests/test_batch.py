@@ -96,3 +96,14 @@ def test_job_without_a_sample_and_missing_job_file(tmp_path, capsys):
     assert "jobs.a: sample is required" in capsys.readouterr().err
     assert _batch(tmp_path / "none.toml", "--out", tmp_path / "out", "--workers", 0) == 2
     assert "batch job file not found" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("scheduler", [None, "tcp://127.0.0.1:1"])
+def test_negative_workers_are_refused_with_or_without_a_scheduler(scheduler):
+    """``--workers -1`` is refused before any cluster is made or reached (also with
+    ``--scheduler``, whose workers the address decides)."""
+    from glossrig.core.errors import InputError
+    from glossrig.core.runners import make_runner
+
+    with pytest.raises(InputError, match="--workers must be >= 0"):
+        make_runner(scheduler, -1)

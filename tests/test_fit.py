@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 from glossrig.core.errors import InputError
-from glossrig.core.fitting.fit import (ALPHA_MIN, PARAM_NAMES, _internal, _make_data, _model, canonical, fit_samples,
+from glossrig.core.fitting.fit import (ALPHA_MIN, PARAM_NAMES, _make_data, _model, canonical, fit_samples, solver_params,
                                fit_ward, peak_weight)
 from glossrig.core.samples import LUMINANCE_WEIGHTS, ward_samples
 from glossrig.core.models.ward import ALPHA_MAX, WardParams, ward_from_angles
@@ -242,7 +242,7 @@ def test_analytic_jacobian_matches_finite_differences():
     geo = geometry(0.04).iloc[::7]
     d = _make_data(geo["theta_in"], geo["theta_out"], geo["theta_h"], geo["phi_h"], np.zeros(len(geo)),
                    np.ones(len(geo)), None)
-    x = _internal(WardParams(0.05, 0.02, 0.08, 0.03, 2.2))
+    x = solver_params(WardParams(0.05, 0.02, 0.08, 0.03, 2.2))
     f, J = _model(x, d, jac=True)
     for i in range(5):
         h = 1e-6 * max(1.0, abs(x[i]))

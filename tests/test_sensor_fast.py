@@ -241,9 +241,9 @@ def test_pixel_pairs_sharing_a_box_muller_transform_are_uncorrelated(sensor):
 
 
 def test_the_llvm_search_is_mitsuba_envs(monkeypatch, tmp_path):
-    """available() finds libLLVM 19 through glossrig.twin.mitsuba_env.llvm19_path (one search):
-    a set DRJIT_LIBLLVM_PATH naming an existing libLLVM 19 is kept, else Debian's paths are
-    tried, and without either there is none."""
+    """glossrig.twin.mitsuba_env.llvm19_path, the one libLLVM 19 search (sensor_drjit.available
+    calls it): a set DRJIT_LIBLLVM_PATH naming an existing libLLVM 19 is kept, else Debian's
+    paths are tried, and without either there is none."""
     from glossrig.twin import mitsuba_env
 
     lib = tmp_path / "libLLVM.so.19.1"
@@ -254,5 +254,5 @@ def test_the_llvm_search_is_mitsuba_envs(monkeypatch, tmp_path):
     monkeypatch.setattr(mitsuba_env, "_LLVM19", (str(tmp_path / "nope.so.19.1"), str(lib)))
     assert mitsuba_env.llvm19_path() == str(lib)
     monkeypatch.setattr(mitsuba_env, "_LLVM19", ())
-    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "missing.so"))
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "missing.so"))   # the search above set it to lib
     assert mitsuba_env.llvm19_path() is None

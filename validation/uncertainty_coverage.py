@@ -331,19 +331,21 @@ def design_comparison(results: list[dict], leds: str, rotations: str, scale: flo
                   "|---|---|" + "---|" * len(params)]
         pooled: dict = {p: [[], []] for p in params}
         inside = {"2x": 0, "band": 0, "all": 0}
+        bands: dict[int, tuple[float, float]] = {}
         for m in named:
             rs = [r for r in results if r["spec"]["material"] == m and r["spec"]["scale"] == scale]
             if not rs:
                 continue
             n = len(rs)
             band = (math.sqrt(n / chi2.ppf(0.975, n)), math.sqrt(n / chi2.ppf(0.025, n)))
+            bands[n] = band
             cells = []
             for p in params:
                 t = _canonical_truth(rs[0]["truth"])
                 norm = 1.0 if p == "lobe_rotation" else abs(t[p])
                 err = np.array([r["with_calibration"]["coverage"][p]["error"] / norm for r in rs])
                 u = pred[m]["combined"][p]
-                if without_albedo:
+                if without_albedo and u is not None:
                     # the fitted albedos scale with the stated reference albedo
                     err = err - np.array([r["spec"]["albedo_stated"] / REFERENCE_ALBEDO - 1 for r in rs])
                     alb = pred[m]["stated"]["albedo_u_rel"] * abs(t[p])
@@ -368,7 +370,8 @@ def design_comparison(results: list[dict], leds: str, rotations: str, scale: flo
         lines += ["", "pooled over the materials (RMS prediction / RMS error): "
                   + ", ".join(f"{p} {v:.2f}" for p, v in pool.items()),
                   f"ratios within [0.5, 2]: {inside['2x']} of {inside['all']}; within the 95 % sampling band of an "
-                  f"RMS of n errors (n = 4: [0.60, 2.87]): {inside['band']} of {inside['all']}"]
+                  "RMS of n errors (" + "; ".join(f"n = {k}: [{b[0]:.2f}, {b[1]:.2f}]" for k, b in sorted(bands.items()))
+                  + f"): {inside['band']} of {inside['all']}"]
     return "\n".join(lines), summary
 
 

@@ -69,6 +69,7 @@ import numpy as np
 
 from glossrig.core.design import coverage as cov
 from glossrig.core.design import fisher as fi
+from glossrig.core.fitting.fit import solver_params
 from glossrig.core.models.ward import WardParams
 
 #: Residual relative gain of one LED x rotation image after neighbour correction and patch
@@ -297,7 +298,7 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
                     th = {k: np.radians(a[k]) for k in ("theta_in", "theta_out", "theta_h", "phi_in", "phi_out")}
                     geo = ward_geometry(th["theta_in"], th["theta_out"], th["theta_h"],
                                         np.radians(np.mod(a["phi_h"] - r, 360.0)))
-                    x_int = np.array([p.rho_d, p.rho_s, math.log(p.alpha_x), math.log(p.alpha_y), p.lobe_rotation])
+                    x_int = solver_params(p)
                     _, parts = ward_parts(geo, x_int, log_alpha=True)
                     add("led_aperture", "footprint", 1.0, JW.T @ blur_effect(parts, x_int,
                                                                             led_slope_variance(th, aperture)))
@@ -382,7 +383,7 @@ class _Sums:
         y = np.concatenate([e[1] for e in self.intr_rows])
         sw = np.concatenate([e[2] for e in self.intr_rows])
         ok0 = np.isfinite(nom["theta_in"]) & np.isfinite(y) & (sw > 0)
-        x0 = np.array([p.rho_d, p.rho_s, math.log(p.alpha_x), math.log(p.alpha_y), p.lobe_rotation])
+        x0 = solver_params(p)
         base = _refit({k: v[ok0] for k, v in nom.items()}, y[ok0], sw[ok0], x0, "mirror", None)
         shifts = []
         for d in range(len(self.intr_rows[0][3])):

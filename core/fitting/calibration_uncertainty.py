@@ -360,9 +360,10 @@ def _refit(ang, y, sw, x0, weighting, clip, max_iter: int = 12, fp=None):
     ub = np.array([np.inf, np.inf, math.log(ALPHA_MAX), math.log(ALPHA_MAX), np.inf])
 
     def residual(x):
-        f, parts = ward_parts(geo, x, log_alpha=True)
-        if fp is not None:
-            f = footprint_eval(geo, fp, x, log_alpha=True)
+        if fp is not None:       # the footprint average (its Jacobian is evaluated anew below)
+            f, parts = footprint_eval(geo, fp, x, log_alpha=True), None
+        else:
+            f, parts = ward_parts(geo, x, log_alpha=True)
         return W * ((f if clip is None else np.minimum(f, clip)) - yc), f, parts
 
     x = np.clip(np.asarray(x0, float), lb, ub)
@@ -412,7 +413,7 @@ def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: in
     ``footprint``: refit the footprint-averaged model (as ``glossrig fit`` does by
     default; each row's footprint from the whole table's neighbouring blocks, held at
     the nominal geometry: it moves with the calibration at second order only)."""
-    from glossrig.core.fitting.fit import channel_values
+    from glossrig.core.fitting.fit import channel_values, solver_params
     from glossrig.core.models.ward import WardParams
 
     need = ("u", "v", "led", "rotation")
@@ -433,10 +434,7 @@ def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: in
     ys = {c: channel_values(sub, c) for c in fits}
     # a channel missing in a row (NaN, glossrig.core.samples) leaves that row out of its refits
     fin = {c: np.isfinite(y) for c, y in ys.items()}
-    x0 = {}
-    for c, f in fits.items():
-        p = f if isinstance(f, WardParams) else f.params
-        x0[c] = np.array([p.rho_d, p.rho_s, math.log(p.alpha_x), math.log(p.alpha_y), p.lobe_rotation])
+    x0 = {c: solver_params(f if isinstance(f, WardParams) else f.params) for c, f in fits.items()}
     nominal = row_angles(cal, u, v, led, rot)
     ang_dev = _angle_check(nominal, sub)
     ok0 = nominal["valid"]

@@ -240,7 +240,8 @@ def _make_data(theta_in, theta_out, theta_h, phi_h, values, W, clip) -> _Data:
     return _Data(geo=ward_geometry(theta_in, theta_out, theta_h, phi_h), W=np.asarray(W, float), y=y)
 
 
-def _internal(p: WardParams) -> np.ndarray:
+def solver_params(p: WardParams) -> np.ndarray:
+    """The solver's parameter vector of ``p``: ``(rho_d, rho_s, ln alpha_x, ln alpha_y, rot)``."""
     return np.array([p.rho_d, p.rho_s, math.log(p.alpha_x), math.log(p.alpha_y), p.lobe_rotation])
 
 
@@ -628,7 +629,7 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
     rng = np.random.default_rng(seed)
 
     # Start points: data-driven grid (variable projection) + user starts.
-    cand = [_internal(p) for p in (starts or [])]
+    cand = [solver_params(p) for p in (starts or [])]
     if grid:
         grid_idx = _subset(d, grid_samples, rng, clip)
         lobes, sol = _grid_search(d, grid_idx)
@@ -947,13 +948,13 @@ def shared_lobe_albedos(df, lobe: WardParams, *, weighting: str = "mirror", clip
     unit = WardParams(rho_d=0.0, rho_s=1.0, alpha_x=lobe.alpha_x, alpha_y=lobe.alpha_y,
                       lobe_rotation=lobe.lobe_rotation)
     d = _make_data(a["theta_in"], a["theta_out"], a["theta_h"], a["phi_h"], np.zeros(W.size), W, None)
-    B = _model(_internal(unit), d)
+    B = _model(solver_params(unit), d)
     out: dict[str, list[float]] = {"rho_d": [], "rho_s": []}
     for c in ("r", "g", "b"):
         if footprint is not None:
             fp_c = footprint.for_channel(c)
-            fp_c = fp_c.with_orders(fp_c.orders_for(d.geo, _internal(unit), log_alpha=True))
-            B = _model(_internal(unit), _Data(d.geo, d.W, d.y, fp_c))
+            fp_c = fp_c.with_orders(fp_c.orders_for(d.geo, solver_params(unit), log_alpha=True))
+            B = _model(solver_params(unit), _Data(d.geo, d.W, d.y, fp_c))
         y = np.asarray(df[c], float)
         Wc = W0 * np.sqrt(np.asarray(sample_weight[c], float)) if isinstance(sample_weight, dict) else W
         Wc = np.where(np.isfinite(y) & np.isfinite(Wc), Wc, 0.0)

@@ -266,7 +266,7 @@ def _exposure_slots(exposures: Sequence[float], paths: Sequence[str], repeats: S
 
 
 def stack_frames(frames: Sequence, repeats: Sequence[int], *, exposures_s: Sequence[float] | None = None,
-                 rel_tol: float = 1e-3, release: bool = False) -> ExposureStack:
+                 rel_tol: float = 1e-3) -> ExposureStack:
     """Combine the raw frames of one (rotation, LED) sequence (thesis eq. 4.31).
 
     ``frames``: :class:`~glossrig.core.calibration.raw.RawFrame` objects (cropped alike),
@@ -283,8 +283,7 @@ def stack_frames(frames: Sequence, repeats: Sequence[int], *, exposures_s: Seque
     pass per exposure on the integer raw values
     (:func:`glossrig.core.calibration.raw.linearize_mean`: exact integer sums, one float32
     rounding, within one float32 ulp of linearising each frame and then
-    :func:`combine_repeats`; error budget there). ``release=True`` empties each frame's
-    mosaic once its exposure is combined (for a caller that no longer needs them).
+    :func:`combine_repeats`; error budget there). The frames are left as they are;
     :func:`stream_stack` makes the same stack reading each frame only when its exposure
     is combined.
     """
@@ -297,7 +296,7 @@ def stack_frames(frames: Sequence, repeats: Sequence[int], *, exposures_s: Seque
     for f in frames[1:]:
         _check_alike(f, frames[0], frames[0].mosaic.shape)
     return _stack(frames.__getitem__, [f.exposure_s for f in frames], [f.path for f in frames], repeats,
-                  exposures_s, rel_tol, release, prefetch=False)
+                  exposures_s, rel_tol, release=False, prefetch=False)
 
 
 def stream_stack(read: Callable[[int], Any], exposures: Sequence[float], paths: Sequence[str],
