@@ -329,3 +329,30 @@ def test_rewriting_a_capture_on_purpose_updates_its_checksums(tmp_path):
     man = load_manifest(tmp_path / "dst")
     got = man.read_raw(man.images[0]).mosaic
     assert np.array_equal(got, np.clip(_mosaic().astype(int) + 5, 0, WHITE))
+
+
+@pytest.mark.parametrize("effect,value", [("shutter_error", 0.002), ("channel_response", 0.05)])
+def test_rewritten_real_camera_effects_follow_their_models(tmp_path, effect, value):
+    """The blind study's real-camera effects written into the DNGs (glossrig.twin.rewrite_raw):
+    a shutter error scales the signal above black by (t + d) / t for the frame's nominal t; a
+    per-channel response compresses only the red pixels, x -> x (1 - c x / (white - black)).
+    Unsaturated pixels within 0.5 DN (the rewrite rounds to integers), saturated ones unchanged."""
+    from glossrig.core.capture import load_manifest
+    from glossrig.twin.rewrite_raw import rewrite_capture
+
+    _one_image_capture(tmp_path / "src")
+    rewrite_capture(tmp_path / "src", tmp_path / "dst", effect, value)
+    fr = load_manifest(tmp_path / "dst").read_raw(load_manifest(tmp_path / "dst").images[0])
+    dn = _mosaic().astype(float)
+    black = np.tile(np.reshape(BLACK, (2, 2)), (H // 2, W // 2)).astype(float)
+    x = dn - black
+    if effect == "shutter_error":
+        want = black + x * (0.0166 + value) / 0.0166
+    else:
+        red = np.zeros((H, W), bool)
+        red[0::2, 0::2] = True                    # RGGB
+        want = np.where(red, black + x * (1 - value * np.maximum(x, 0) / (WHITE - black)), dn)
+    want = np.where(dn >= WHITE, dn, want)
+    want = np.clip(np.round(want), 0, WHITE)
+    assert np.max(np.abs(fr.mosaic.astype(float) - want)) <= 0.5
+    assert not np.array_equal(fr.mosaic, np.clip(dn, 0, WHITE).astype(np.uint16))   # the effect is there

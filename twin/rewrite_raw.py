@@ -28,7 +28,7 @@ import numpy as np
 from glossrig.core.capture import load_manifest
 from glossrig.core.errors import InputError
 
-REWRITABLE = ("black_level_offset", "sensor_nonlinearity", "axis_step")
+REWRITABLE = ("black_level_offset", "sensor_nonlinearity", "axis_step", "shutter_error", "channel_response")
 CFA_NAMES = {0: "R", 1: "G", 2: "B"}
 
 
@@ -54,6 +54,14 @@ def rewrite_capture(src, dst, effect: str, value: float) -> Path:
             x = fr.origin[0] + np.arange(dn.shape[1])[None, :]
             step = np.where(x >= fr.full_size[0] // 2, 1.0 + value, 1.0)
             dn = np.where(dn >= fr.white, dn, black + (dn - black) * step)
+        elif effect == "shutter_error":
+            x = dn - black
+            dn = np.where(dn >= fr.white, dn, black + x * (im.exposure_s + value) / im.exposure_s)
+        elif effect == "channel_response":
+            x = dn - black
+            red = fr.channel_index() == 0
+            dn = np.where((dn >= fr.white) | ~red, dn,
+                          black + x * (1.0 - value * np.maximum(x, 0) / (fr.white - black)))
         else:
             # the signal above black, read noise included: compressing max(x, 0) instead would
             # move every dark pixel's negative noise to 0, a +1.1 DN offset (measured) that then
