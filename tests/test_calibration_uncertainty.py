@@ -262,3 +262,28 @@ def test_refits_use_the_footprint_model_the_fit_uses(synthetic):
                                     sources=("lamps",), footprint=True)
     assert "footprint-averaged" in comp["_meta"]["method"]
     assert all(np.isfinite(comp["luminance"][k]["u"]) for k in ("rho_d", "rho_s", "alpha_x", "alpha_y"))
+
+
+def test_load_inputs_takes_the_poses_a_caller_has_solved(tiny_captures, monkeypatch):
+    """``load_inputs(..., solved=)`` builds the draws' poses from a calibrate_capture result the
+    caller already has (``calibrate lamps`` after its measurement) - the same inputs as solving
+    the calibration image again, without solving it - and refuses a result of another rotation."""
+    from glossrig.core.calibration import poses
+    from glossrig.core.errors import InputError
+
+    d = tiny_captures
+    args = (d / "camera.json", d / "lamps.json", d / "sample", [0.0])
+    res = poses.calibrate_capture(d / "sample", d / "camera.json", rotation=0.0)
+    again = cu.load_inputs(*args)
+
+    def refuse(*a, **k):
+        raise AssertionError("calibrate_capture called although the poses were given")
+
+    monkeypatch.setattr(poses, "calibrate_capture", refuse)
+    given = cu.load_inputs(*args, solved={0: res})
+    for part in ("holder", "cylinder"):
+        for k, v in again.poses[0.0][part].items():
+            assert np.array_equal(given.poses[0.0][part][k], v), (part, k)
+    assert np.array_equal(given.K, again.K) and given.lamps.keys() == again.lamps.keys()
+    with pytest.raises(InputError, match="solved for rotation 0"):
+        cu.load_inputs(*args[:3], [90.0], solved={90.0: res})

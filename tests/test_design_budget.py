@@ -138,26 +138,93 @@ def test_components_scale_with_their_stated_errors_and_combine(rig):
     assert alb["components"]["calibration"]["alpha_x"] == 0.0
 
 
-def test_design_errors_cli_reports_both_figures(tmp_path, capsys, rig):
-    """The CLI writes the budget and the noise-only bound from one walk over the pixels: the
-    bound equals :func:`placement.design_errors`' (the same rows and sums: to rounding), and
+def _camera_file(path, rig, scale: float):
+    """A camera calibration as ``glossrig calibrate camera`` writes it (board views included) for
+    the rig's camera at ``scale``: the views of test_calibration_uncertainty, 0.15 px RMS."""
+    from test_calibration_uncertainty import _board_views
+
+    from glossrig.core.calibration.intrinsics import FORMAT
+
+    K, size = rig.camera.matrix(scale), [int(v) for v in rig.camera.size(scale)]
+    doc = {"format": FORMAT, "version": 1, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2],
+           "camera_matrix": K.tolist(), "distortion": [float(v) for v in rig.camera.distortion],
+           "image_size": size, "reprojection_rms_px": 0.15, "board": {"inner_corners": [9, 6], "square_mm": 25.0},
+           "views": [{"rvec": rv.ravel().tolist(), "tvec_mm": tv.ravel().tolist()} for rv, tv in _board_views()]}
+    path.write_text(json.dumps(doc))
+    return path
+
+
+#: ``budget_text`` prints each cell to 3 significant digits: a cell is off by at most half a unit
+#: of its third digit, 0.5 % of it, and a root sum of squares of such cells by as much again
+TABLE_ROUNDING = 2 * 0.005
+
+
+def _printed_budget(text: str, label: str) -> dict:
+    """The rows of ``budget_text``'s table (as the CLI prints it) for material ``label``:
+    parameter -> the numbers of its component and combined cells (None for '-')."""
+    rows = {}
+    for line in text.splitlines():
+        cells = line.split()
+        if len(cells) == 2 + len(EB.COMPONENTS) + 1 and cells[0] == label[:24] and cells[1] in fi.PARAMS:
+            rows[cells[1]] = [None if c == "-" else float(c.rstrip("%d")) for c in cells[2:]]
+    return rows
+
+
+def test_design_errors_cli_states_a_usable_budget(tmp_path, capsys, rig):
+    """What a user reads from ``glossrig design errors`` for a Table 9.1 material (sample_2_6):
+    every parameter's combined uncertainty finite and positive; the components listed add in
+    quadrature to it (in the JSON to rounding, in the printed table to its 3 digits,
+    :data:`TABLE_ROUNDING`); with a camera calibration (``--camera``) the calibration
+    component holds the intrinsics draws: with the same pose and lamp figures it is larger
+    than without, for every parameter, by what the draws add. The noise-only bound printed
+    beside it equals :func:`placement.design_errors`' (the same rows and sums: to rounding), and
     the budget's noise component is not below it (Cramer-Rao: the pipeline's weights are not
     the inverse variances, and the budget adds the reference's noise)."""
     from glossrig.cli.main import main
     from glossrig.core.design.placement import design_errors, parse_materials
 
-    out = tmp_path / "errors.json"
-    assert main(["design", "errors", "--rig", "thesis_rig.toml", "--materials", "sample_2_6", "--leds", "8,10",
-                 "--rotations", "0", "--scale", "0.05", "--out", str(out)]) == 0
-    doc = json.loads(out.read_text())
-    noise_only = doc["expected_errors"]["sample_2_6"]["stderr"]
-    comb = doc["expected_uncertainty"]["sample_2_6"]
-    assert "noise-only" in doc["stderr_kind"]
+    cam = _camera_file(tmp_path / "camera.json", rig, 0.05)
+    base = ["design", "errors", "--rig", "thesis_rig.toml", "--materials", "sample_2_6", "--leds", "8,10",
+            "--rotations", "0", "--scale", "0.05", "--pose-rot", "0.06", "--pose-t", "0.04"]
+    docs, printed = {}, {}
+    for name, extra in (("plain", []), ("camera", ["--camera", str(cam)])):
+        out = tmp_path / f"errors_{name}.json"
+        assert main([*base, *extra, "--out", str(out)]) == 0
+        captured = capsys.readouterr()
+        docs[name] = json.loads(out.read_text())
+        printed[name] = _printed_budget(captured.out + captured.err, "sample_2_6")
+    for name, doc in docs.items():
+        e = doc["expected_uncertainty"]["sample_2_6"]
+        assert set(e["components"]) == set(EB.COMPONENTS)
+        assert set(printed[name]) == set(fi.PARAMS), printed[name]
+        for k in fi.PARAMS:
+            comb = e["combined"][k]
+            assert comb is not None and math.isfinite(comb) and comb > 0, (name, k, comb)
+            parts = [e["components"][c][k] for c in EB.COMPONENTS]
+            assert all(u is not None and math.isfinite(u) and u >= 0 for u in parts), (name, k, parts)
+            assert math.sqrt(sum(u * u for u in parts)) == pytest.approx(comb, rel=1e-12), (name, k)
+            assert e["components"]["noise"][k] > 0 and e["components"]["calibration"][k] > 0, (name, k)
+            row = printed[name][k]
+            assert row[-1] is not None and row[-1] > 0, (name, k, row)
+            cells = [c or 0.0 for c in row[:-1]]
+            assert math.sqrt(sum(c * c for c in cells)) == pytest.approx(row[-1], rel=TABLE_ROUNDING), (name, k, row)
+    with_cam = docs["camera"]["expected_uncertainty"]["sample_2_6"]
+    without = docs["plain"]["expected_uncertainty"]["sample_2_6"]
+    assert "draws of the camera calibration" in with_cam["stated"]["intrinsics"]
+    assert "not drawn" in without["stated"]["intrinsics"]
+    for k in fi.PARAMS:
+        # the same pose, lamp, albedo figures: the difference of the variances is the draws'
+        for c in ("noise", "model", "footprint"):
+            assert with_cam["components"][c][k] == pytest.approx(without["components"][c][k], rel=1e-12), (c, k)
+        drawn = with_cam["components"]["calibration"][k] ** 2 - without["components"]["calibration"][k] ** 2
+        assert drawn > 0, (k, with_cam["components"]["calibration"][k], without["components"]["calibration"][k])
+    noise_only = docs["plain"]["expected_errors"]["sample_2_6"]["stderr"]
+    assert "noise-only" in docs["plain"]["stderr_kind"]
     ref = design_errors(rig, parse_materials("sample_2_6"), rotations=[0.0], led_ids=[8, 10], scale=0.05)
     for name in fi.PARAMS:
         assert noise_only[name] == pytest.approx(ref["sample_2_6"].stderr[name], rel=1e-12)
-        assert comb["combined"][name] > noise_only[name]
-        assert comb["components"]["noise"][name] >= noise_only[name]
+        assert without["combined"][name] > noise_only[name]
+        assert without["components"]["noise"][name] >= noise_only[name]
     assert main(["design", "errors", "--rig", "thesis_rig.toml", "--materials", "sample_2_6", "--leds", "8",
                  "--pose-rot", "-1", "--scale", "0.05"]) == 2
     assert "--pose-rot" in capsys.readouterr().err

@@ -52,3 +52,18 @@ def test_refinement_noise_covariance_matches_the_scatter_of_refits():
     assert np.all(ratio > 1 - rel) and np.all(ratio < 1 / (1 - rel)), (stated_mean, scatter)
     # unbiased to within the scatter: the mean over the refits is the true lamp
     assert np.all(np.abs(est.mean(axis=0) - lamp) < 4 * scatter / np.sqrt(REPEATS) + 1e-9)
+
+
+def test_calibrate_lamps_draws_default_is_the_cores_and_the_help_shows_it():
+    """``calibrate lamps --draws`` defaults to :data:`LAMP_DRAWS` and its help states that
+    value (it once said 24 over a default of None, with the core filling it in)."""
+    from glossrig.cli.main import build_parser
+    from glossrig.core.calibration.lamps import LAMP_DRAWS
+
+    parser = build_parser()
+    args = parser.parse_args(["calibrate", "lamps", "spec", "--camera", "c.json", "--out", "l.json"])
+    assert args.draws == LAMP_DRAWS and args.seed == 0
+    lamps = next(a for a in parser._actions if a.dest == "verb").choices["calibrate"]
+    sub = next(a for a in lamps._actions if a.dest == "subverb").choices["lamps"]
+    text = " ".join(sub.format_help().split())
+    assert f"stated uncertainty (default: {LAMP_DRAWS})" in text and "(default: 0)" in text, text

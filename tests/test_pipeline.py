@@ -240,3 +240,27 @@ def test_extract_then_fit_record_their_provenance(rigdata, extracted, tmp_path):
     assert fp["inputs"]["samples"]["sha256"] == sha(out)
     assert fp["inputs"]["samples"]["provenance"] == prov         # the chain
     assert fp["options"]["starts"] == 1 and fp["options"]["seed"] == 3 and fp["options"]["channels"] == ["luminance"]
+
+
+def test_report_draws_the_markers_solving_only_the_image_it_shows(tiny_captures, tmp_path, monkeypatch):
+    """The report's "Markers and poses" figure (core/report/document.py) solves the poses of the
+    calibration image it draws - the capture's first - and no other rotation's (without a
+    rotation calibrate_capture solves them all): one call, for rotation 0, and the figure drawn."""
+    from glossrig.core.calibration import poses
+    from glossrig.core.report import document
+
+    calls = []
+    solve = poses.calibrate_capture
+
+    def recording(*args, **kw):
+        calls.append(kw.get("rotation"))
+        return solve(*args, **kw)
+
+    monkeypatch.setattr(poses, "calibrate_capture", recording)
+    doc = document._Doc(tmp_path)
+    document._poses_section(doc, tiny_captures / "sample", tiny_captures / "camera.json", None, tmp_path, None)
+    assert calls == [0.0]
+    assert_image_has_content(tmp_path / "poses.png")
+    figs = [b for b in doc.blocks if b.kind == "fig"]
+    assert len(figs) == 1 and figs[0].data == tmp_path / "poses.png", figs
+    assert "(rotation 0 deg)" in figs[0].extra["caption"], figs[0].extra

@@ -107,24 +107,26 @@ def run_geometry(args) -> int:
 
 
 def add_lamps_arguments(p: argparse.ArgumentParser) -> None:
+    from glossrig.core.calibration.lamps import LAMP_DRAWS
+
     p.add_argument("specular_dir", help="capture folder of the specular sample")
     p.add_argument("--camera", required=True, help="camera.json from glossrig calibrate camera")
     p.add_argument("--out", required=True, help="lamps.json to write")
-    p.add_argument("--draws", type=int, default=None,
-                   help="draws of the camera calibration and poses for each lamp's stated uncertainty "
-                        "(default 24)")
-    p.add_argument("--seed", type=int, default=0, help="seed of those draws (default 0)")
+    # the defaults are the core's and the help formatter (glossrig.cli.main) shows them
+    p.add_argument("--draws", type=int, default=LAMP_DRAWS,
+                   help="draws of the camera calibration and poses for each lamp's stated uncertainty")
+    p.add_argument("--seed", type=int, default=0, help="seed of those draws")
     add_force_option(p, "an existing --out file")
     p.add_argument("--no-progress", action="store_true")
 
 
 def run_lamps(args) -> int:
     from glossrig.core.calibration.intrinsics import load_camera
-    from glossrig.core.calibration.lamps import LAMP_DRAWS, calibrate_lamps, save_lamps
+    from glossrig.core.calibration.lamps import calibrate_lamps, save_lamps
 
     prepare_output(args.out, args.force)
     d = calibrate_lamps(args.specular_dir, load_camera(args.camera), progress=not args.no_progress,
-                        n_draws=LAMP_DRAWS if args.draws is None else args.draws, seed=args.seed)
+                        n_draws=args.draws, seed=args.seed)
     save_lamps(d, args.out)
     for k, v in d["lamps_mm"].items():
         print(f"LED {k}: {[round(x, 2) for x in v]} mm, standard uncertainty "

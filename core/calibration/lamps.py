@@ -183,7 +183,7 @@ def _solve_lamp(pts, nrm, centre, vals, distance, axis_point, axis_dir, refine: 
 
 
 def geometry_draws(camera_json, specular_dir, units: list[dict], refine: bool = True, n_draws: int = LAMP_DRAWS,
-                   seed: int = 0) -> tuple[dict[int, np.ndarray], bool]:
+                   seed: int = 0, solved: dict | None = None) -> tuple[dict[int, np.ndarray], bool]:
     """The lamp positions solved again under ``n_draws`` draws of the geometry they were
     found with (GUM Supplement 1, Monte Carlo): the camera calibration (intrinsics and
     distortion together, a parametric bootstrap of the calibration) and the specular
@@ -195,12 +195,15 @@ def geometry_draws(camera_json, specular_dir, units: list[dict], refine: bool = 
     rotation, u, v`` (block corners, centre at ``+ 0.5``), ``values``, ``distance``.
     Returns LED -> (n_draws, 3) positions (mm), and whether the intrinsics were drawn (not
     where the camera file lacks the calibration's views, :class:`~glossrig.core.fitting.calibration_uncertainty.CameraViews`).
+    ``solved``: rotation -> the capture's :func:`~glossrig.core.calibration.poses.calibrate_capture`
+    result where the caller has it (those rotations are not solved again,
+    :func:`~glossrig.core.fitting.calibration_uncertainty.load_inputs`).
     """
     from glossrig.core.calibration.poses import relative_to_holder
     from glossrig.core.extraction.cylinder import surface_samples
     from glossrig.core.fitting.calibration_uncertainty import draw_calibration, intrinsics_drawn, load_inputs
 
-    cal = load_inputs(camera_json, None, specular_dir, sorted({float(x["rotation"]) for x in units}))
+    cal = load_inputs(camera_json, None, specular_dir, sorted({float(x["rotation"]) for x in units}), solved=solved)
     rng = np.random.default_rng(seed)
     sub = []
     for x in units:
@@ -274,7 +277,10 @@ def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = Tr
         lamps[int(led)], spreads[int(led)] = lamp, spread
         units.append({"led": int(led), "rotation": float(rot), "u": sub["u"].to_numpy(float),
                       "v": sub["v"].to_numpy(float), "values": vals, "distance": dist})
-    drawn, intr = geometry_draws(cam.path, specular_dir, units, refine, n_draws, seed)
+    # the poses the measurement solved, where its geometry keeps them (RotationGeometry.poses): the
+    # draws start from those instead of solving each rotation's calibration image again
+    solved = {rot: p for rot, g in meas.geometry.items() if (p := getattr(g, "poses", None)) is not None}
+    drawn, intr = geometry_draws(cam.path, specular_dir, units, refine, n_draws, seed, solved=solved)
     std, parts = {}, {}
     for k, lamp in lamps.items():
         geo = drawn[k].std(axis=0, ddof=1)

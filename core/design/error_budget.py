@@ -197,16 +197,35 @@ def ratio_sigma(nm, f, cos_in, dist_mm, reference_f: float) -> np.ndarray:
     BRDF (albedo / pi) and ``nm`` a noise model of :mod:`glossrig.core.design.fisher`
     (inf where either value has no usable exposure; NaN where ``f`` is 0)."""
     f = np.asarray(f, float)
+    return _ratio(f, nm.sigma(f, cos_in, dist_mm), nm.sigma(np.full(f.shape, reference_f), cos_in, dist_mm),
+                  reference_f)
+
+
+def _ratio(f: np.ndarray, sigma_f: np.ndarray, sigma_ref: np.ndarray, reference_f: float) -> np.ndarray:
+    """:func:`ratio_sigma` from the noise model's standard deviations of the sample's value
+    ``f`` and of the reference's ``reference_f`` (evaluated once by the caller)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        rel_s = nm.sigma(f, cos_in, dist_mm) / f
-        rel_r = nm.sigma(np.full(f.shape, reference_f), cos_in, dist_mm) / reference_f
-    return f * np.hypot(rel_s, rel_r)
+        return f * np.hypot(sigma_f / f, sigma_ref / reference_f)
 
 
 def _sensor_only(nm):
     """The noise model without its per-pixel LED term: what ``glossrig extract`` writes as a
     row's variance (the HDR merge's sensor noise) and so what the fit weights by."""
     return replace(nm, led_rel=0.0) if isinstance(nm, fi.HdrNoise) else nm
+
+
+def _sigmas(nm, f, cos_in, dist_mm) -> tuple[np.ndarray, np.ndarray]:
+    """``(nm.sigma(f, ..), _sensor_only(nm).sigma(f, ..))`` with the HDR merge of
+    :class:`~glossrig.core.design.fisher.HdrNoise` evaluated once (its sensor part is the same in
+    both; the LED term is added as :meth:`~glossrig.core.design.fisher.HdrNoise.relative` adds
+    it, so the figures are those of the two calls, bit for bit)."""
+    f = np.asarray(f, float)
+    with np.errstate(divide="ignore", invalid="ignore"):     # as ratio_sigma evaluates them
+        if not isinstance(nm, fi.HdrNoise):
+            s = nm.sigma(f, cos_in, dist_mm)
+            return s, s
+        shot = nm.sensor_relative(nm.electron_rate(f, cos_in, dist_mm))
+        return np.sqrt(shot ** 2 + nm.led_rel ** 2) * f, np.sqrt(shot ** 2) * f
 
 
 def design_budget(rig, materials, **kw) -> dict[str, dict]:
@@ -246,7 +265,6 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
     ref_f = ref_albedo / math.pi
     px = cov.pixel_geometry(rig, scale)
     nm = fi.noise_model(noise, rig)
-    nm_w = _sensor_only(nm)
     rot_rad = math.radians(pose_rot_deg)
     moves = [(f"pose_rot{k}", rotation_from_vector(rot_rad * e), None) for k, e in enumerate(np.eye(3))] + \
             [(f"pose_t{k}", None, pose_t_mm * e) for k, e in enumerate(np.eye(3))]
@@ -268,13 +286,17 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
             moved_lamps = [cov.direction_angles(sub, lamp + lamp_std * e, half=True) for e in np.eye(3)]
             moved_poses = [(name, cov.direction_angles(_moved(sub, R, t), lamp, half=True)) for name, R, t in moves]
             add = _accumulator(s.b)
+            # the noise model at these rows, evaluated once: the reference's (every rotation alike)
+            # and, per rotation, the sample's, with and without the LED term
+            ref_sig, ref_sig_w = _sigmas(nm, np.full(rows.size, ref_f), a["cos_in"], a["dist_in"])
             for r in rotations:
                 f, J = _ward(a, r, p)
-                s.info += fi.gain_marginal_information(J, nm.sigma(f, a["cos_in"], a["dist_in"]), f, bound_gain_rel, w)
-                s_tab = ratio_sigma(nm_w, f, a["cos_in"], a["dist_in"], ref_f)
+                sig, sig_w = _sigmas(nm, f, a["cos_in"], a["dist_in"])
+                s.info += fi.gain_marginal_information(J, sig, f, bound_gain_rel, w)
+                s_tab = _ratio(f, sig_w, ref_sig_w, ref_f)          # the table's weight (sensor noise)
                 ok = np.isfinite(s_tab) & (s_tab > 0)
                 mult = np.where(ok, m / np.where(ok, s_tab, 1.0), 0.0)
-                A_b, B_b = fi.sandwich_parts(J, ratio_sigma(nm, f, a["cos_in"], a["dist_in"], ref_f), mult, w)
+                A_b, B_b = fi.sandwich_parts(J, _ratio(f, sig, ref_sig, ref_f), mult, w)
                 s.A += A_b
                 s.B += B_b
                 JW = J * (w * mult ** 2)[:, None]

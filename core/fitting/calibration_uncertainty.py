@@ -200,9 +200,11 @@ def rotation_poses(res: dict, rig) -> dict:
     return {"holder": h, "cylinder": c}
 
 
-def load_inputs(camera_json, lamps_json, capture_dir, rotations) -> CalibrationInputs:
+def load_inputs(camera_json, lamps_json, capture_dir, rotations, solved: dict | None = None) -> CalibrationInputs:
     """The calibration of a samples table: intrinsics, lamps, and each rotation's poses
-    solved again from ``capture_dir``'s calibration images (seconds per rotation)."""
+    solved again from ``capture_dir``'s calibration images (seconds per rotation), except
+    those of ``solved``: rotation -> the :func:`~glossrig.core.calibration.poses.calibrate_capture`
+    result (of ``capture_dir`` with ``camera_json``, that rotation) a caller has already solved."""
     from glossrig.core.calibration.intrinsics import load_camera
     from glossrig.core.calibration.lamps import load_lamps
     from glossrig.core.calibration.poses import calibrate_capture
@@ -216,9 +218,15 @@ def load_inputs(camera_json, lamps_json, capture_dir, rotations) -> CalibrationI
     ldoc = read_json(Path(lamps_json), "lamp file") if lamps_json is not None else {}
     man = load_manifest(capture_dir)
     rig = load_rig(man.rig_path())
+    solved = {float(k): v for k, v in (solved or {}).items()}
     poses = {}
     for rot in rotations:
-        res = calibrate_capture(capture_dir, camera_json, rotation=float(rot))
+        res = solved.get(float(rot))
+        if res is None:
+            res = calibrate_capture(capture_dir, camera_json, rotation=float(rot))
+        elif float(res["rotation"]) != float(rot):
+            raise InputError(f"the poses given for rotation {float(rot):g} deg were solved for rotation "
+                             f"{float(res['rotation']):g}", path=capture_dir)
         poses[float(rot)] = rotation_poses(res, rig)
     return CalibrationInputs(K=cam.K, dist=cam.dist, size=(int(cam.image_size[0]), int(cam.image_size[1])),
                              lamps=lamps, lamps_std=lamp_std(ldoc), radius=rig.cylinder_radius,

@@ -432,12 +432,17 @@ def _poses_section(doc: _Doc, sample_dir, camera_json, poses_image, fig_dir: Pat
         doc.note("Markers and poses: not drawn (needs the sample capture and camera.json).")
         return
     from glossrig.core.calibration.poses import calibrate_capture
+    from glossrig.core.capture import load_manifest
 
     png = fig_dir / "poses.png"
     try:
+        # the figure shows the first calibration image: solve that one only (without a rotation
+        # calibrate_capture solves every rotation's image and draws the first)
+        first = load_manifest(sample_dir).select("calibration")[:1]
         if log:
             log("solving the poses on the calibration image")
-        res = calibrate_capture(sample_dir, camera_json, diagnostic=png)
+        res = calibrate_capture(sample_dir, camera_json, rotation=float(first[0].rotation) if first else None,
+                                diagnostic=png)
     except InputError as e:
         doc.note(f"Markers and poses: not available ({e}).")
         return
