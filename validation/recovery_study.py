@@ -285,6 +285,38 @@ def _calibration_note(rep: dict) -> list[str]:
             "estimates, which this table compares, do not depend on it.", ""]
 
 
+def _commit(prov: dict) -> str:
+    src = (prov or {}).get("source") or {}
+    c = src.get("commit")
+    return "unknown" if not c else c[:7] + (" (working tree with uncommitted changes)" if src.get("dirty") else "")
+
+
+def section_commits(work: Path, rep: dict) -> list[str]:
+    """The code each material's numbers come from, as its fit.json's provenance records it:
+    the commit of ``glossrig extract`` (the samples) and of ``glossrig fit``, for the
+    footprint-aware and the point fit."""
+    rows = []
+    for m, e in rep["materials"].items():
+        if "fit" not in e:
+            continue
+        cells = []
+        for path in (work / f"{m}.fit.json", point_fit_path(work, m)):
+            if not path.exists():
+                cells += ["-", "-"]
+                continue
+            prov = json.loads(path.read_text()).get("provenance") or {}
+            samples = ((prov.get("inputs") or {}).get("samples") or {}).get("provenance") or {}
+            cells += [_commit(samples), _commit(prov)]
+        rows.append(f"| {m} | {cells[0]} | {cells[1]} | {cells[3]} |")
+    if not rows:
+        return []
+    return ["## Code versions", "",
+            "As each fit.json's provenance records them (`source.commit`). Each material has its own capture (its "
+            "capture.json records the twin's options and seed, not a commit); the camera and lamp calibrations and the "
+            "reference capture are shared by all materials of WORK.", "",
+            "| material | extraction | footprint-aware fit | point fit |", "|---|---|---|---|", *rows, ""]
+
+
 def section_before(path: Path) -> list[str]:
     if not path.exists():
         return []
@@ -543,7 +575,7 @@ def main() -> None:
             "fit's median absolute relative residual; the lobe is resolvable when it exceeds 1. The rotation also "
             "needs its standard error below 3 deg.", "",
             *section_point_vs_footprint(work, ev, list(fps)), *section_canonical(rep, ev),
-            *section_no_lobe(work, rep, ev), *section_footprint(work, rep, ev, runs),
+            *section_no_lobe(work, rep, ev), *section_footprint(work, rep, ev, runs), *section_commits(work, rep),
             *section_before(HERE / "recovery_before_footprint.md")]
     Path(a.out).write_text("\n".join(text))
     print("\n".join(text))

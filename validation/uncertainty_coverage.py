@@ -220,15 +220,149 @@ def _canonical_truth(truth: dict) -> dict:
     return t.as_dict()
 
 
+def sampling_band(n: int, p: float = 0.95, level: float = 0.95) -> tuple[float, float, float, float]:
+    """How far the coverage of ``n`` independent 95 % intervals strays from 95 % by chance:
+    the central ``level`` range ``[lo, hi]`` of covered / n for covered ~ Binomial(n, p)
+    (exact quantiles), and the two one-sided tail probabilities of a count ``c`` are
+    given by :func:`binomial_tails`. Returns ``(lo, hi, mean, sd)`` as shares of n."""
+    from scipy.stats import binom
+
+    a = (1 - level) / 2
+    return (float(binom.ppf(a, n, p)) / n, float(binom.ppf(1 - a, n, p)) / n, p, math.sqrt(p * (1 - p) / n))
+
+
+def binomial_tails(c: int, n: int, p: float = 0.95) -> tuple[float, float]:
+    """P(covered <= c) and P(covered >= c) for covered ~ Binomial(n, p)."""
+    from scipy.stats import binom
+
+    return float(binom.cdf(c, n, p)), float(binom.sf(c - 1, n, p))
+
+
+def _band_cell(c: int, n: int) -> str:
+    lo, hi, _, _ = sampling_band(n)
+    below, above = binomial_tails(c, n)
+    inside = lo <= c / n <= hi
+    return (f"{100 * lo:.1f}-{100 * hi:.1f} % | {'inside' if inside else 'OUTSIDE'} "
+            f"(P(<= {c}) {below:.3g}, P(>= {c}) {above:.3g})")
+
+
 def _coverage_table(results: list[dict], key: str) -> list[str]:
     s = summarise(results, key)
     lines = ["| parameter | n | 95 % covers | coverage | median half-width (rel.; rot: rad) | RMS error | "
-             "half-width / RMS |", "|---|---|---|---|---|---|---|"]
+             "half-width / RMS | binomial 95 % band of the coverage for a true 95 % | the coverage |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for p, v in s.items():
         lines.append(f"| {p} | {v['n']} | {v['covered']} | {100 * v['coverage']:.1f} % | "
-                     f"{v['median_half_width']:.3g} | {v['rms_error']:.3g} | {v['ratio']:.2f} |")
+                     f"{v['median_half_width']:.3g} | {v['rms_error']:.3g} | {v['ratio']:.2f} | "
+                     f"{_band_cell(v['covered'], v['n']) if v['n'] else '- | -'} |")
     tot = sum(v["covered"] for v in s.values()), sum(v["n"] for v in s.values())
-    return lines + ["", f"all parameters: {tot[0]} of {tot[1]} ({100 * tot[0] / max(tot[1], 1):.1f} %)", ""]
+    band = ""
+    if tot[1]:
+        lo, hi, _, sd = sampling_band(tot[1])
+        below, above = binomial_tails(tot[0], tot[1])
+        band = (f"; binomial 95 % band for a true 95 % on {tot[1]} independent estimates {100 * lo:.1f}-"
+                f"{100 * hi:.1f} % (sd {100 * sd:.2f} %), P(<= {tot[0]}) {below:.3g}, P(>= {tot[0]}) {above:.3g}")
+    return lines + ["", f"all parameters: {tot[0]} of {tot[1]} ({100 * tot[0] / max(tot[1], 1):.1f} %){band}", ""]
+
+
+def clustering(results: list[dict], key: str = "with_calibration") -> dict:
+    """How far the estimates' misses cluster: the five parameters of one measurement share
+    its fit and calibration draw, and a round's measurements share a calibration, so the
+    260 estimates are not independent. The design effect (Kish 1965) from the
+    measurements as clusters: the variance of the misses per measurement over the
+    binomial variance at the observed miss rate; ``n_eff = n / deff`` and the binomial
+    95 % band of the coverage for a true 95 % on ``n_eff`` estimates."""
+    per = []
+    for r in results:
+        cov = [r[key]["coverage"][p]["covered"] for p in PARAMS]
+        cov = [c for c in cov if c is not None]
+        per.append((len(cov), sum(not c for c in cov)))
+    n = sum(k for k, _ in per)
+    misses = np.array([m for _, m in per], float)
+    q = misses.sum() / n
+    m = n / len(per)
+    deff = float(misses.var(ddof=1) / (m * q * (1 - q))) if 0 < q < 1 and len(per) > 1 else math.nan
+    n_eff = int(round(n / deff)) if deff and math.isfinite(deff) and deff > 0 else n
+    lo, hi, _, _ = sampling_band(n_eff)
+    return {"n": n, "measurements": len(per), "with_misses": int((misses > 0).sum()), "deff": deff,
+            "n_eff": n_eff, "band": (lo, hi)}
+
+
+def component_table(results: list[dict], key: str = "with_calibration") -> list[str]:
+    """Per parameter, what the stated uncertainty is made of and how it compares with the
+    actual errors: the RMS and the 95th percentile of ``z = error / combined u`` (1.0 and
+    ~2 for an honest normal budget; the RMS of n independent such z lies within
+    ``sqrt(chi2_n / n)``'s central 95 % - below it the budget over-covers, above it
+    under-covers), and the median share of each component in the combined variance
+    (u_c^2 / u^2, GUM JCGM 100 eq. 10), over the measurements; for the misses, the
+    component with the largest share."""
+    from scipy.stats import chi2
+
+    lines = ["| parameter | n | RMS of error / u (its 95 % band for an honest u: sqrt(chi2_n / n)) | 95th pct of "
+             "abs(error / u) | median variance share: noise / model / footprint / calibration | misses: |z|, "
+             "largest component |",
+             "|---|---|---|---|---|---|"]
+    for p in PARAMS:
+        z, shares, miss = [], [], []
+        for r in results:
+            e, c = r[key]["uncertainty"][p], r[key]["coverage"][p]
+            if c["covered"] is None or not e["combined"]:
+                continue
+            z.append(c["error"] / e["combined"])
+            comp = {k: (v or 0.0) ** 2 / e["combined"] ** 2 for k, v in e["components"].items()}
+            shares.append([comp.get(k, 0.0) for k in ("noise", "model", "footprint", "calibration")])
+            if not c["covered"]:
+                miss.append(f"{r['spec']['id']} {abs(z[-1]):.1f}, {max(comp, key=comp.get)}")
+        if not z:
+            continue
+        za = np.abs(z)
+        med = np.median(np.array(shares), axis=0)
+        n = len(z)
+        band = f"{math.sqrt(chi2.ppf(0.025, n) / n):.2f}-{math.sqrt(chi2.ppf(0.975, n) / n):.2f}"
+        lines.append(f"| {p} | {n} | {math.sqrt(float(np.mean(np.square(z)))):.2f} ({band}) | "
+                     f"{float(np.percentile(za, 95)):.2f} | {' / '.join(f'{x:.2f}' for x in med)} | "
+                     f"{'; '.join(miss) or '-'} |")
+    return lines + [""]
+
+
+def albedo_out_table(results: list[dict], key: str = "with_calibration") -> list[str]:
+    """rho_d and rho_s against the reference-albedo draw: the fitted albedos scale exactly
+    with the stated reference albedo (eq. 4.79 is linear in them and the samples are
+    ratios to the reference), so each relative error is the study's known draw ``d =
+    albedo_stated / 0.8 - 1`` plus the rest. Per parameter: the RMS of the relative
+    errors, of ``d`` and of the rest, and the median stated combined u (relative), of
+    which the albedo's stated share is ``u_albedo`` (the share is not split out of the
+    Monte Carlo component, whose 24 draws estimate it to ~15 %, so the rest is not
+    divided by a stated u here). Also the draws' RMS over ``u_albedo`` with its band."""
+    from scipy.stats import chi2
+
+    lines = ["| parameter | n | RMS rel. error | RMS of the albedo draws d | RMS of (rel. error - d) | median "
+             "stated u (rel.), of which the albedo's |", "|---|---|---|---|---|---|"]
+    d_all, u_alb = [], math.nan
+    for p in ("rho_d", "rho_s"):
+        err, ds, us = [], [], []
+        for r in results:
+            e, c = r[key]["uncertainty"][p], r[key]["coverage"][p]
+            alb = r.get("calibration_meta", {}).get("stated", {}).get("albedo_u_rel")
+            if c["covered"] is None or not e["combined"] or alb is None:
+                continue
+            u_alb = alb
+            t = abs(_canonical_truth(r["truth"])[p])
+            err.append(c["error"] / t)
+            ds.append(r["spec"]["albedo_stated"] / REFERENCE_ALBEDO - 1)
+            us.append(e["combined"] / t)
+        if p == "rho_d":
+            d_all = ds
+        if err:
+            rms = [math.sqrt(float(np.mean(np.square(x)))) for x in (err, ds, np.subtract(err, ds))]
+            lines.append(f"| {p} | {len(err)} | " + " | ".join(f"{100 * x:.2f} %" for x in rms)
+                         + f" | {100 * float(np.median(us)):.2f} %, {100 * u_alb:.0f} % |")
+    if d_all:
+        n = len(d_all)
+        ratio = math.sqrt(float(np.mean(np.square(d_all)))) / u_alb
+        lines += ["", f"the {n} drawn reference-albedo errors: RMS / stated {ratio:.2f} (95 % band for n = {n}: "
+                  f"{math.sqrt(chi2.ppf(0.025, n) / n):.2f}-{math.sqrt(chi2.ppf(0.975, n) / n):.2f})"]
+    return lines + [""]
 
 
 def lamp_check(results: list[dict]) -> dict:
@@ -264,6 +398,18 @@ def report(results: list[dict], command: str) -> str:
             for sc in scales:
                 sub = [r for r in results if r["spec"]["scale"] == sc]
                 lines += [f"*{title}, scale {sc:g}* ({len(sub)} measurements)", ""] + _coverage_table(sub, key)
+    cl = clustering(results)
+    lines += [f"Clustering of the misses (with the calibration component): {cl['with_misses']} of "
+              f"{cl['measurements']} measurements hold a miss; design effect {cl['deff']:.2f} (variance of the misses "
+              f"per measurement over the binomial one), effective n {cl['n_eff']} of {cl['n']}: binomial 95 % band "
+              f"of the coverage for a true 95 % {100 * cl['band'][0]:.1f}-{100 * cl['band'][1]:.1f} %", ""]
+    lines += ["**What the budget (with the calibration component) is made of, against the actual errors**, all "
+              "scales", ""] + component_table(results)
+    for sc in scales if len(scales) > 1 else []:
+        sub = [r for r in results if r["spec"]["scale"] == sc]
+        lines += [f"*scale {sc:g}* ({len(sub)} measurements)", ""] + component_table(sub)
+    lines += ["**rho_d and rho_s against the drawn reference-albedo error** (`albedo_out_table`), all scales", ""]
+    lines += albedo_out_table(results)
     rounds: dict = {}
     for r in results:
         rounds.setdefault(r["spec"]["round"], r)
