@@ -120,38 +120,61 @@ def test_ordered_results_keep_job_order_whatever_finishes_first():
     assert list(ordered_results(None, _slow_square, jobs[:2])) == [0, 1]
 
 
+def test_reference_units_follow_their_sample_units_by_the_lag():
+    """extract_samples divides a pair when its reference unit arrives, so every reference unit
+    must come after its sample unit; with a lag of k, k further sample units come between
+    (the reference's geometry is solved beside them), and with none they alternate."""
+    from glossrig.core.extraction.extract import _paired_order
+
+    units = [(0.0, 9), (0.0, 10), (0.0, 5), (45.0, 9)]
+    assert _paired_order(units, 0) == [(i, *u) for u in units for i in (0, 1)]
+    for lag in (1, 2, 5):
+        order = _paired_order(units, lag)
+        assert sorted(order) == sorted((i, *u) for u in units for i in (0, 1))
+        for k, u in enumerate(units):
+            s, r = order.index((0, *u)), order.index((1, *u))
+            between = sum(1 for j in order[s + 1:r] if j[0] == 0)
+            assert r > s and between == min(lag, len(units) - 1 - k)
+
+
 # ------------------------------------------------------------------ the raw path
 
 @pytest.mark.mitsuba
 def test_a_plain_dng_crop_is_read_as_libraw_decodes_it(caps):
-    """The crop read straight from the bytes of a plainly stored DNG (only when the manifest's
-    checksum made read_raw hold them) equals LibRaw's full decode cropped, with its levels."""
+    """The crop (or the whole image) copied straight from a plainly stored DNG, with or without
+    the manifest's checksum, equals LibRaw's full decode (cropped), with its levels."""
+    from glossrig.core.calibration.raw import _read_libraw
+
     files = sorted((caps / "sample").glob("*.dng"))[:3]
     for f in files:
         data = f.read_bytes()
-        full = read_raw(f)                                        # LibRaw, whole image
-        w, h = full.full_size
+        cfa, black, white, mosaic, origin, (w, h) = _read_libraw(f, None, None, None)      # LibRaw, whole image
+        assert origin == (0, 0)
         crop = even_crop((w // 5 + 1, h // 3 + 1, w * 4 // 5, h - 3), (w, h))
-        fast = read_raw(f, crop=crop, sha256=hashlib.sha256(data).hexdigest())
         x0, y0, x1, y1 = crop
-        np.testing.assert_array_equal(fast.mosaic, full.mosaic[y0:y1, x0:x1])
-        assert fast.mosaic.dtype == np.uint16 and fast.origin == (x0, y0) and fast.full_size == (w, h)
-        np.testing.assert_array_equal(fast.black, full.black)
-        np.testing.assert_array_equal(fast.cfa, full.cfa)
-        assert fast.white == full.white
+        for fast, box in ((read_raw(f, crop=crop, sha256=hashlib.sha256(data).hexdigest()), crop),
+                          (read_raw(f, crop=crop), crop), (read_raw(f), (0, 0, w, h))):
+            a, b, c, d = box
+            np.testing.assert_array_equal(fast.mosaic, mosaic[b:d, a:c])
+            assert fast.mosaic.dtype == np.uint16 and fast.origin == (a, b) and fast.full_size == (w, h)
+            np.testing.assert_array_equal(fast.black, black)
+            np.testing.assert_array_equal(fast.cfa, cfa)
+            assert fast.white == white
 
 
 @pytest.mark.mitsuba
 def test_reading_a_checked_raw_leaves_no_buffer_of_its_bytes_to_the_garbage_collector(caps):
-    """read_raw with a checksum parses the file's bytes through an in-memory buffer; tifffile
-    keeps it in reference cycles that only a garbage collection frees, which held ~33 MB per
-    48 MB full-resolution DNG until one ran (issue 19: a worker's memory). The buffer is closed
-    (its bytes let go) before read_raw returns."""
+    """read_raw with a checksum hashes, parses and crops the file from one mapping of it; tifffile
+    keeps the file object it parses in reference cycles that only a garbage collection frees,
+    which held ~33 MB per 48 MB full-resolution DNG until one ran when it parsed a copy of the
+    bytes (issue 19: a worker's memory). The mapping is closed (its pages let go) before
+    read_raw returns, and no in-memory copy of the bytes is left open."""
     import gc
     import io
+    import mmap
 
     def open_buffers() -> set[int]:
-        return {id(o) for o in gc.get_objects() if isinstance(o, io.BytesIO) and not o.closed}
+        return {id(o) for o in gc.get_objects() if isinstance(o, (io.BytesIO, mmap.mmap)) and not o.closed}
 
     f = sorted((caps / "sample").glob("*.dng"))[0]
     digest = hashlib.sha256(f.read_bytes()).hexdigest()
@@ -164,6 +187,8 @@ def test_reading_a_checked_raw_leaves_no_buffer_of_its_bytes_to_the_garbage_coll
     finally:
         gc.enable()
     assert frame.mosaic.shape == (8, 8) and left == set()
+    with pytest.raises(InputError, match="checksum does not match"):
+        read_raw(f, crop=(0, 0, 8, 8), sha256="0" * 64)
 
 
 def test_linearize_mean_is_the_correctly_rounded_mean_of_the_linearised_repeats():
@@ -194,3 +219,30 @@ def test_linearize_mean_is_the_correctly_rounded_mean_of_the_linearised_repeats(
     np.testing.assert_array_equal(linearize_mean(mos, frac, white)[0], old[0])
     with pytest.raises(InputError, match="white level"):
         linearize_mean(mos, 16000, white)
+
+
+def test_linearize_mean_with_fractional_levels_holds_one_repeat_at_a_time():
+    """The separate (inexact) route streams the repeats: its peak memory is a float64 running sum,
+    one linearised float32 repeat, two masks and the float32 result (8 + 4 + 1 + 1 + 4 = 18 bytes
+    a pixel), below the 4 m bytes a pixel of the m repeats stacked in float32 that it used to make
+    (m = 8: 32); and it still equals combine_repeats over the stack."""
+    import tracemalloc
+
+    rng = np.random.default_rng(5)
+    m, shape = 8, (256, 384)
+    mos = [rng.integers(500, 16383, size=shape, dtype=np.uint16) for _ in range(m)]
+    frac = np.full((2, 2), 600.5, np.float32)
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        mean, sat = linearize_mean(mos, frac, 15520.0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    px = shape[0] * shape[1]
+    assert peak < 24 * px < 4 * m * px
+    old, clipped = combine_repeats(np.stack([linearize_mosaic(x, frac, 15520.0) for x in mos])[:, None])
+    np.testing.assert_array_equal(mean, old[0])
+    np.testing.assert_array_equal(sat, clipped[0])
+    with pytest.raises(InputError, match="NaN or infinite"):
+        linearize_mean([np.full(shape, np.nan, np.float32)] * 2, frac, 15520.0)

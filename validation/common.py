@@ -8,7 +8,9 @@ fit), each step a real ``glossrig`` command, so a study runs what a user runs.
   last lines of its error output.
 * :func:`simulate` / :func:`capture` / :func:`checkerboard`: twin captures with the
   studies' reuse rule (a complete capture is reused; a partial one is removed and
-  made again, or finished with ``--resume``, or every capture is made anew);
+  made again, or finished with ``--resume``, or every capture is made anew; or, for
+  :func:`capture`, a capture of the first LEDs of a list is extended to the whole
+  list, :func:`extend_leds`);
 * :func:`camera` and :func:`calibrate`: the camera and lamp calibration of the nominal
   rig on the twin, resumable in a folder;
 * :func:`extract` and :func:`fit`: one step each, skipped when its output exists;
@@ -20,6 +22,8 @@ Every helper passes ``stdout``/``stderr``/``echo``/``cwd`` on to :func:`glossrig
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import shlex
 import shutil
 import subprocess
@@ -27,7 +31,8 @@ import sys
 from pathlib import Path
 
 from glossrig.core.atomic import atomic_write_json
-from glossrig.core.capture import capture_complete, read_truth
+from glossrig.core.capture import capture_complete, load_manifest, read_truth
+from glossrig.core.errors import InputError
 from validation.paths import RIG
 
 GLOSSRIG = (sys.executable, "-m", "glossrig.cli.main")
@@ -118,10 +123,70 @@ def simulate(out: Path, *args, rig: Path = RIG, extra=(), mode: str = "reuse", *
     return out
 
 
+def extend_leds(out: Path, leds: list[int]) -> bool:
+    """Turn the twin capture in OUT, made by ``glossrig simulate`` with LEDs that are the
+    first ones of LEDS and otherwise the same options, into an unfinished capture of all
+    of LEDS that ``glossrig simulate --resume`` completes: the images already made are
+    kept, only the added LEDs' sequences are simulated. Returns whether the manifest was
+    changed (False: OUT holds no simulated capture, or one of LEDS already).
+
+    This gives the capture a fresh simulation of LEDS would give, byte for byte: a twin
+    image draws its noise and LED fluctuations from its own random stream, keyed by what
+    the image is (``glossrig.twin.sensor.image_rng``), at its time on the plan's
+    schedule, and the plan takes the calibration image and then the LEDs in their given
+    order (``CapturePlan.shots``), so the first LEDs' images stand at the same times in
+    both plans. The manifest gets the options and plan record (sha256 of the options,
+    LED list, number of planned images) the longer simulation writes; its recorded
+    images are checked against their sha256 by the resume. LEDs that do not begin with
+    the capture's own (another order, fewer LEDs) cannot be made so: InputError."""
+    from glossrig.twin.simulate import OPTIONS_KEY
+
+    out = Path(out)
+    if not (out / "capture.json").is_file():
+        return False
+    m = load_manifest(out)
+    where = out / "capture.json"
+    opts, plan = m.meta.get(OPTIONS_KEY), m.meta.get("plan")
+    if not opts or not plan:
+        return False
+    old = [int(x) for x in opts["leds"]]
+    leds = [int(x) for x in leds]
+    if leds == old:
+        return False
+    if leds[:len(old)] != old:
+        raise InputError(f"cannot extend the capture of LEDs {old} to LEDs {leds}: its LEDs must be the first "
+                         "ones of the new list, in the same order (their images' times on the schedule)", path=where)
+    if plan.get("led_exposures_s") or plan.get("checkerboard_views"):
+        raise InputError("cannot extend a capture with per-LED exposures or checkerboard views", path=where)
+
+    def digest(o: dict) -> str:        # twin.simulate: the plan's text is the options' sorted JSON
+        return hashlib.sha256(json.dumps(o, sort_keys=True).encode()).hexdigest()
+
+    if digest(opts) != plan.get("sha256"):
+        raise InputError("the manifest's plan sha256 is not that of its simulate options (made by another version "
+                         "of glossrig simulate?); simulate the capture anew", path=where)
+    new = {**opts, "leds": leds}
+    per_led = len(plan["exposures_s"]) * int(plan["repeats"]) * len(plan["rotations"])
+    m.meta[OPTIONS_KEY] = new
+    m.meta["plan"] = {**plan, "sha256": digest(new), "leds": leds,
+                      "planned_images": int(plan["planned_images"]) + per_led * (len(leds) - len(old))}
+    m.meta.pop("finished", None)
+    m.complete = False
+    m.save()
+    return True
+
+
 def capture(out: Path, material: str, scale: float, seed: int, rotations: str = "0", repeats: int = 1, *,
             leds: str = "middle", extra=(), rig: Path = RIG, mode: str = "reuse", **run) -> Path:
     """A capture of MATERIAL: :func:`simulate` with ``--material --leds --rotations
-    --repeats --scale --seed``."""
+    --repeats --scale --seed``. ``mode`` as :func:`simulate`'s, or ``extend``: a capture
+    in OUT of the first of LEDS (all other options equal) is extended to LEDS
+    (:func:`extend_leds`) and completed; otherwise as ``resume``."""
+    if mode == "extend":
+        from glossrig.core.rig import load_rig
+
+        extend_leds(Path(out), load_rig(rig).select_leds(leds))
+        mode = "resume"
     return simulate(out, "--material", material, "--leds", leds, f"--rotations={rotations}", "--repeats", repeats,
                     "--scale", scale, "--seed", seed, rig=rig, extra=extra, mode=mode, **run)
 

@@ -33,8 +33,12 @@ one command measures, each in a fresh process, one after the other on the same c
     then with one; (c) the peak resident memory of each run's whole process tree
     (the extraction and its workers, summed, sampled every 0.1 s from /proc);
 (d) the tables' largest differences: the run with workers against the one without, and
-    against the code before issue 19 (``--baseline`` commit, run from a ``git archive``
-    of its ``core/``), per column; rows must match one to one.
+    against the code of the ``--baseline`` commit (by default the last before issue 19; run
+    from a ``git archive`` of its ``core/``, with ``--workers`` processes where its
+    ``extract_samples`` takes them, else one), per column, on the rows both have.
+
+The captures are made once and reused; captures of fewer LEDs in ``--work`` (an earlier
+run's) are extended to ``--leds`` by simulating only the added LEDs (:func:`simulate_captures`).
 
 The camera file is the twin's true intrinsics (truth.json); it changes no timing.
 """
@@ -66,8 +70,16 @@ def prepare(w: Path, leds: str, repeats: int) -> None:
         c["camera_matrix"] = [[c["fx"], 0, c["cx"]], [0, c["fy"], c["cy"]], [0, 0, 1]]
         c["image_size"] = [6032, 4032]
         (w / "camera.json").write_text(json.dumps(c))
+    simulate_captures(w, leds, repeats)
+
+
+def simulate_captures(w: Path, leds: str, repeats: int, scale: float = 1.0) -> None:
+    """The sample and reference captures in ``w`` (``sample``, ``reference``): made once and
+    reused; a capture of the first of ``leds`` (an earlier run with fewer) is extended to
+    all of them, its images kept (:func:`validation.common.extend_leds`), and an interrupted
+    one completed."""
     for name, mat, seed in (("sample", "sample_2_6", 2), ("reference", "lambert:0.8", 3)):
-        capture(w / name, mat, 1.0, seed, "0", repeats, leds=leds)
+        capture(w / name, mat, scale, seed, "0", repeats, leds=leds, mode="extend")
 
 
 def subset(src: Path, dst: Path, leds: list[int]) -> Path:
@@ -186,7 +198,10 @@ def decode_floor(files: list[Path], workers: int, out_json: Path) -> None:
 
 
 def extract_run(sample: Path, reference: Path, camera_json: Path, workers: int, out_parquet: Path) -> None:
-    """(b): ``extract_samples`` with ``workers`` (0: the call without the argument, for old code)."""
+    """(b): ``extract_samples`` with ``workers`` processes; code whose ``extract_samples`` has
+    no ``workers`` (before issue 19) is called without it (one process). The processes used
+    are recorded."""
+    import inspect
     import pickle
 
     import numpy as np
@@ -197,15 +212,16 @@ def extract_run(sample: Path, reference: Path, camera_json: Path, workers: int, 
 
     cam = load_camera(camera_json)
     lamps = {l.id: np.array(l.position) for l in load_rig(RIG).leds}
+    has_workers = "workers" in inspect.signature(extract_samples).parameters
     t0, c0 = time.perf_counter(), time.process_time()
-    df = extract_samples(sample, reference, cam, lamps, **({"workers": workers} if workers else {}))
+    df = extract_samples(sample, reference, cam, lamps, **({"workers": workers} if has_workers else {}))
     wall = time.perf_counter() - t0
     cpu = time.process_time() - c0
     ru = resource.getrusage(resource.RUSAGE_CHILDREN)
     df.to_parquet(out_parquet)
     out_parquet.with_suffix(".report.pkl").write_bytes(pickle.dumps(df.attrs.get("dynamic_range")))
     out_parquet.with_suffix(".json").write_text(json.dumps({"wall_s": wall, "cpu_s": cpu + ru.ru_utime + ru.ru_stime,
-                                                            "rows": len(df)}))
+                                                            "rows": len(df), "workers": workers if has_workers else 1}))
 
 
 def _tree_rss(root: int) -> int:
@@ -298,9 +314,12 @@ def compare(a, w: Path) -> dict:
     me = [sys.executable, "-m", "validation.extract_benchmark", "--work", str(w)]
     res["floor"] = run_sampled(me + ["--decode-floor", str(a.workers), str(w / "floor.json")])
     res["floor"].update(json.loads((w / "floor.json").read_text()))
+    res["load_average"].append(os.getloadavg()[0])
     cam = w / "camera.json"
-    runs = {f"workers{a.workers}": (a.workers, None), "workers1": (1, None), "baseline": (0, a.baseline)}
+    # the baseline before the one-process run: its differences matter more than that run's time
+    runs = {f"workers{a.workers}": (a.workers, None), "baseline": (a.workers, a.baseline), "workers1": (1, None)}
     earlier = json.loads((w / "compare.json").read_text()) if (w / "compare.json").exists() else {}
+    partial = w / "compare.partial.json"      # what is measured so far, should the command be stopped
     for name, (n, commit) in runs.items():
         if name == "baseline" and a.reuse_baseline and "baseline" in earlier:
             res[name] = {**earlier["baseline"], "reused_from_earlier_run": True}   # its code does not change
@@ -313,13 +332,18 @@ def compare(a, w: Path) -> dict:
         r.update(json.loads(pq.with_suffix(".json").read_text()))
         res[name] = r
         res["load_average"].append(os.getloadavg()[0])
+        partial.write_text(json.dumps(res, indent=1))
     import pickle
 
     res["diff_vs_workers1"] = differences(w / "workers1.parquet", w / f"workers{a.workers}.parquet")
     res["diff_vs_baseline"] = differences(w / "baseline.parquet", w / f"workers{a.workers}.parquet")
     rep = {k: pickle.loads((w / f"{k}.report.pkl").read_bytes()) for k in ("workers1", f"workers{a.workers}")}
     res["dynamic_range_report_equal_vs_workers1"] = rep["workers1"] == rep[f"workers{a.workers}"]
+    if (w / "baseline.report.pkl").exists() and not res["baseline"].get("reused_from_earlier_run"):
+        res["dynamic_range_report_equal_vs_baseline"] = (
+            pickle.loads((w / "baseline.report.pkl").read_bytes()) == rep[f"workers{a.workers}"])
     res["raw_files"], res["raw_gb"] = len(files), sum(f.stat().st_size for f in files) / 1e9
+    res["memory_gb"] = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9
     (w / "compare.json").write_text(json.dumps(res, indent=1))
     return res
 
@@ -343,16 +367,33 @@ def compare_section(res: dict, a) -> str:
                 + ("all equal" if not neq else f"differ: {', '.join(neq)}"))
 
     cols = ("r", "g", "b", "weight", "weight_r", "weight_g", "weight_b")
+    commit = res["baseline_commit"]
+    old_name = f"commit {commit[:10]}" + (" (before issue 19)" if commit.startswith("ef7b09d") else "")
+    old_n = old.get("workers", 1)
+    n_leds = len(str(a.leds).split(","))
+    if n_leds == 8 and a.repeats == 3:
+        scope = "**the thesis capture** (all 8 middle-row LEDs)"
+    else:
+        scope = (f"**a subset of the thesis capture** (8 LEDs x 3 repeats, 866 raw files), {res['raw_files']} raw "
+                 "files, because simulating all 8 LEDs at full resolution took the twin longer than that session's "
+                 "CPU budget")
+    mem = res.get("memory_gb")
+    cache = ("" if mem is None else
+             f" The raw files ({res['raw_gb']:.1f} GB) are "
+             + (f"more than the machine's {mem:.0f} GB of memory: no run can be served from the page cache alone, "
+                "each reads most of its files from disk." if res["raw_gb"] > mem else
+                f"less than the machine's {mem:.0f} GB of memory: runs may be served from the page cache."))
+    rep_old = res.get("dynamic_range_report_equal_vs_baseline")
     lines = [MARK_BEGIN, "## After issue 19: parallel, streamed extraction against the decode floor", "",
              "Command (simulates the captures once, then measures each item in a fresh process):", "",
              f"    nice -n 10 python -m validation.extract_benchmark --work {a.work} --leds {a.leds} "
              f"--repeats {a.repeats} --compare --workers {n} --baseline {a.baseline}", "",
              f"Measured on twin captures at scale 1.0 (6032 x 4032, 48 MB uncompressed DNGs) of `sample_2_6` and the "
              f"`lambert:0.8` reference, LEDs {a.leds} x {a.repeats} repeats x 18 exposures, one rotation: "
-             f"**a subset of the thesis capture** (8 LEDs), {res['raw_files']} raw files ({res['raw_gb']:.1f} GB) "
-             f"instead of 866, because simulating all 8 LEDs at full resolution would take the twin far longer than "
-             f"this session's CPU budget. The machine has {os.cpu_count()} cores and was shared with other "
-             f"engineers' work while this ran (load average at the start and after each extraction run: "
+             f"{scope}; {res['raw_files']} raw files ({res['raw_gb']:.1f} GB).{cache} "
+             f"The machine has {os.cpu_count()} cores and was shared with other "
+             f"engineers' work while this ran (1-minute load average at the start and after, in turn, the decode floor, the run with "
+             f"{n} workers, the {old_name} run and the one-process run: "
              f"{', '.join(f'{x:.1f}' for x in res['load_average'])}); absolute seconds are inflated by that load, "
              "the ratios below are between runs made one after the other in the same command.", "",
              "| run | wall s | CPU s (all processes) | peak RSS of the process tree | rows |", "|---|---|---|---|---|",
@@ -362,21 +403,24 @@ def compare_section(res: dict, a) -> str:
              f"{new['peak_tree_gb']:.2f} GB | {new['rows']} |",
              f"| `extract_samples`, 1 process (`--workers 1`) | {one['wall_s']:.1f} | {one['cpu_s']:.1f} | "
              f"{one['peak_tree_gb']:.2f} GB | {one['rows']} |",
-             f"| before issue 19 (commit {res['baseline_commit'][:10]}), 1 process | {old['wall_s']:.1f} | {old['cpu_s']:.1f} | "
+             f"| {old_name}, {old_n} process{'es' if old_n > 1 else ''} | {old['wall_s']:.1f} | {old['cpu_s']:.1f} | "
              f"{old['peak_tree_gb']:.2f} GB | {old['rows']} |", "",
              *(["The 'before' row is from the previous `--compare` run on the same captures (`--reuse-baseline`: "
                 "its code does not change); the other rows are from this one.", ""] if old.get("reused_from_earlier_run")
                else []),
              f"**Wall time of the extraction with {n} workers / decode floor with {n} processes: "
-             f"{new['wall_s'] / fl['wall_s']:.2f}** (target at most 1.5); against the code before issue 19: "
-             f"{old['wall_s'] / new['wall_s']:.2f}x faster in wall time, {old['cpu_s'] / new['cpu_s']:.2f}x less CPU. "
+             f"{new['wall_s'] / fl['wall_s']:.2f}** (target at most 1.5); against the code of {old_name}: "
+             f"its wall time / this code's {old['wall_s'] / new['wall_s']:.2f}, its CPU / this code's "
+             f"{old['cpu_s'] / new['cpu_s']:.2f}. "
              f"Peak memory {new['peak_tree_gb']:.2f} GB for the extraction and its workers together (target under 4 GB).",
              "",
              f"Differences (d), values r, g, b and weights: {n} workers against 1: "
              f"{worst(res['diff_vs_workers1'], cols)}; dynamic-range report "
              f"{'identical' if res['dynamic_range_report_equal_vs_workers1'] else 'DIFFERENT'}. "
-             f"Against the code before issue 19: {worst(res['diff_vs_baseline'], cols)}; every column: "
-             f"{worst(res['diff_vs_baseline'])}.", "", MARK_END]
+             f"Against the code of {old_name}: {worst(res['diff_vs_baseline'], cols)}; every column: "
+             f"{worst(res['diff_vs_baseline'])}"
+             + ("" if rep_old is None else f"; dynamic-range report {'identical' if rep_old else 'DIFFERENT'}")
+             + ".", "", MARK_END]
     return "\n".join(lines)
 
 
@@ -553,8 +597,7 @@ def main() -> None:
         return
     w.mkdir(parents=True, exist_ok=True)
     if a.compare:
-        for name, mat, seed in (("sample", "sample_2_6", 2), ("reference", "lambert:0.8", 3)):
-            capture(w / name, mat, 1.0, seed, "0", a.repeats, leds=a.leds)
+        simulate_captures(w, a.leds, a.repeats)
         truth_camera(w / "sample", w / "camera.json")
         write_compare(compare(a, w), a)
         return

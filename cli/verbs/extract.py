@@ -114,12 +114,11 @@ def run(args) -> int:
     if follow:
         from glossrig.core.extraction.follow import IDLE_TIMEOUT_S, follow_extract
 
-        df, stores = follow_extract(args.sample_dir, args.reference, cam, lamps, args.out,
-                                    albedo=args.reference_albedo, estimator=args.estimator, resume=resume,
-                                    idle_timeout_s=IDLE_TIMEOUT_S if idle is None else idle,
-                                    progress=not args.no_progress, plots=args.plots,
-                                    workers=getattr(args, "workers", None))
-        ms, mr = load_manifest(args.sample_dir), load_manifest(args.reference)       # the finished captures'
+        df, stores, ms, mr = follow_extract(args.sample_dir, args.reference, cam, lamps, args.out,
+                                            albedo=args.reference_albedo, estimator=args.estimator, resume=resume,
+                                            idle_timeout_s=IDLE_TIMEOUT_S if idle is None else idle,
+                                            progress=not args.no_progress, plots=args.plots,
+                                            workers=getattr(args, "workers", None))   # ms, mr: as it read them
     else:
         ms, mr = load_manifest(args.sample_dir), load_manifest(args.reference)       # read once, passed on
         check_compatible(ms, mr)

@@ -279,7 +279,7 @@ def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = Tr
                       "v": sub["v"].to_numpy(float), "values": vals, "distance": dist})
     # the poses the measurement solved, where its geometry keeps them (RotationGeometry.poses): the
     # draws start from those instead of solving each rotation's calibration image again
-    solved = {rot: p for rot, g in meas.geometry.items() if (p := getattr(g, "poses", None)) is not None}
+    solved = {rot: g.poses for rot, g in meas.geometry.items() if g.poses is not None}
     drawn, intr = geometry_draws(cam.path, specular_dir, units, refine, n_draws, seed, solved=solved)
     std, parts = {}, {}
     for k, lamp in lamps.items():

@@ -250,6 +250,14 @@ class _EdgeProblem:
         self.side, self.seg, self.g = np.concatenate(sides), np.concatenate(segs), np.concatenate(groups)
         self.n_groups = gid
         self.w = np.ones(gid)
+        # the normal equations' entries that do not depend on the model (columns 1 and u; the
+        # products with the column of ones are the other factor exactly): summed once
+        g, G = self.g, gid
+        self._const = {(0, 0): np.bincount(g, np.ones_like(self.v), minlength=G),
+                       (0, 1): np.bincount(g, self.u, minlength=G),
+                       (1, 1): np.bincount(g, self.u * self.u, minlength=G),
+                       ("r", 0): np.bincount(g, self.v, minlength=G),
+                       ("r", 1): np.bincount(g, self.u * self.v, minlength=G)}
 
     def model_phi(self, x: np.ndarray) -> np.ndarray:
         R = cv2.Rodrigues(x[:3])[0]
@@ -268,10 +276,21 @@ class _EdgeProblem:
         G, g = self.n_groups, self.g
         M = np.empty((G, 4, 4))
         r = np.empty((G, 4))
+        # sum over each group of cols[i] * cols[j] (and * v): the entries without phi are
+        # constant (__init__), a product with the column of ones is the other column, and
+        # u * phi (i, j = 1, 2) is column 3 - the same numbers, summed once
+        const = self._const
         for i in range(4):
-            r[:, i] = np.bincount(g, cols[i] * self.v, minlength=G)
+            r[:, i] = const[("r", i)] if i < 2 else np.bincount(g, cols[i] * self.v, minlength=G)
             for j in range(i, 4):
-                M[:, i, j] = M[:, j, i] = np.bincount(g, cols[i] * cols[j], minlength=G)
+                s: np.ndarray
+                if j < 2:
+                    s = const[(i, j)]
+                elif i == 0 or (i, j) == (1, 2):
+                    s = M[:, 0, 3] if (i, j) == (1, 2) else np.bincount(g, cols[j], minlength=G)
+                else:
+                    s = np.bincount(g, cols[i] * cols[j], minlength=G)
+                M[:, i, j] = M[:, j, i] = s
         beta = np.linalg.solve(M + 1e-12 * np.eye(4), r[..., None])[..., 0]
         pred = sum(cols[i] * beta[g, i] for i in range(4))
         prior = (np.clip(x[6:], *LOG_SIGMA_RANGE) - LOG_SIGMA_PRIOR[0]) / LOG_SIGMA_PRIOR[1]

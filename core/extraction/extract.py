@@ -28,6 +28,7 @@ angle differences, which wraps phi correctly and has no pole singularity.
 """
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -69,6 +70,9 @@ class RotationGeometry:
     crop: tuple[int, int, int, int]
     patch_mask: np.ndarray        # bool, crop-sized: white patch pixels
     block_index: tuple[np.ndarray, np.ndarray] | None = field(repr=False, default=None)  # (row, col) in crop blocks
+    #: calibrate_capture's result these poses come from (corners, corner PnP, edge-fit std): what
+    #: the calibration draws start from (calibrate lamps: calibration_uncertainty.load_inputs(solved=))
+    poses: dict | None = field(repr=False, default=None)
 
 
 def camera_arrays(cam: CameraCalibration):
@@ -114,7 +118,8 @@ def rotation_geometry(man: Manifest, rig: Rig, cam: CameraCalibration, rotation:
     v = y0 + 2 * bi.ravel() + 0.5
     surf = surface_samples(K, dist, (w, h), R_hold, t_hold, R_cyl, t_cyl, rig.cylinder_radius, rig.sample_height,
                            pixels=(u, v), footprint_half_px=BLOCK_FOOTPRINT_HALF_PX)
-    geom = RotationGeometry(rotation, poses["file"], R_hold, t_hold, R_cyl, t_cyl, surf, crop, mask.astype(bool))
+    geom = RotationGeometry(rotation, poses["file"], R_hold, t_hold, R_cyl, t_cyl, surf, crop, mask.astype(bool),
+                            poses=poses)
     geom.block_index = (((surf.v - 0.5 - y0) / 2).astype(int), ((surf.u - 0.5 - x0) / 2).astype(int))
     return geom
 
@@ -137,7 +142,7 @@ def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
     """Patch-normalised HDR values (N_blocks, 3), their variances and per-channel
     validity for one LED (thesis eq. 4.31-4.50 through :mod:`glossrig.core.radiometry.hdr`
     and :mod:`glossrig.core.radiometry.patch`)."""
-    seq = [im for im in man.select("sequence", rotation=geom.rotation) if im.leds == [led]]
+    seq = led_sequence(man, geom.rotation, led)
     if not seq:
         raise InputError(f"no sequence for LED {led} at rotation {geom.rotation:g} deg", path=man.path)
     # one exposure's frames at a time, read (checksums checked) as they are combined
@@ -170,6 +175,12 @@ def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
     st, fix = block_status(status, tfix, cfa, geom.block_index)
     st[~np.isfinite(vals) & (st == hdrmod.VALID)] = hdrmod.TOO_FEW      # no valid pixel reason: say "too few"
     return LedValues(vals, vvar, st, fix)
+
+
+def led_sequence(man: Manifest, rotation: float, led: int) -> list:
+    """The manifest entries of one LED's sequence images at one rotation (every repeat and
+    exposure, in manifest order)."""
+    return [im for im in man.select("sequence", rotation=rotation) if im.leds == [led]]
 
 
 def block_values(rate: np.ndarray, var: np.ndarray, cfa, block_index) -> tuple[np.ndarray, np.ndarray]:
@@ -308,6 +319,10 @@ class _Source:
     def unit_name(self, rot: float, led: int) -> str:
         return unit_name(self.prefix, rot, led)
 
+    def sequence_files(self, rot: float, led: int) -> list[Path]:
+        """The raw files of a unit's sequences (:func:`led_sequence`)."""
+        return [self.man.folder / im.file for im in led_sequence(self.man, rot, led)]
+
 
 def capture_units(man: Manifest) -> list[tuple[float, int]]:
     """The (rotation, LED) units of a capture's sequence images, in plan order (rotations,
@@ -338,35 +353,34 @@ def _open_source(capture, name: str, what: str, prefix: str) -> _Source:
     return _Source(man, load_rig(man.rig_path()), prefix)
 
 
-def _solve_geometries(pool, sources: list[_Source], cam: CameraCalibration, keys, geoms: dict) -> None:
-    """Solve :func:`rotation_geometry` for every (source index, rotation) of ``keys`` not in
-    ``geoms`` (in ``pool`` when given) and add them."""
-    need = [k for k in dict.fromkeys(keys) if k not in geoms]
-    jobs = [(sources[i].man, sources[i].rig, cam, rot) for i, rot in need]
-    # one at a time: a full-resolution calibration image's demosaic and marker search take
-    # ~2 GB, and two side by side would set the run's peak memory
-    for key, g in zip(need, ordered_results(pool, rotation_geometry if pool is None else _geometry_in_worker, jobs,
-                                            window=1)):
-        geoms[key] = g
-
-
 def _measured_units(pool, sources: list[_Source], order, cam: CameraCalibration, lamps, estimator: str, store,
-                    geoms: dict, bar):
+                    geoms: dict, bar, solve=()):
     """The table of every (source index, rotation, LED) of ``order`` (:func:`measure_unit`), yielded
     in that order: from ``store`` when it holds the unit, else measured in ``pool`` (None: in this
-    process) and saved to ``store``. The geometries the measured units need and ``geoms`` lacks are
-    solved and added to it: in this process first (:func:`_solve_geometries`), or in ``pool`` one
-    at a time (a full-resolution calibration image takes ~2 GB), each next one started as soon as
-    the one before is solved, so that it runs beside the units that need only the ones solved
-    (the wall time of a geometry overlaps a unit's instead of idling the other workers)."""
+    process) and saved to ``store``.
+
+    The geometries (:func:`rotation_geometry`) the measured units need, and those of ``solve``
+    (further (source index, rotation) keys a caller wants), that ``geoms`` lacks are solved and
+    added to it, in the order the units first need them: in this process first, or in ``pool``
+    one at a time (a full-resolution calibration image takes ~2 GB), each next one started as
+    soon as the one before is solved, so that it runs beside the units that need only the
+    geometries already solved (its wall time overlaps theirs instead of idling the other
+    workers). While a geometry is solved the files of the next units are read ahead
+    (:func:`_read_ahead`: the disk would otherwise idle)."""
     def stored(i, rot, led) -> bool:
         return store is not None and store.has(sources[i].unit_name(rot, led))
 
     order = list(order)
     todo = [job for job in order if not stored(*job)]
-    need = [k for k in dict.fromkeys((i, rot) for i, rot, _ in todo) if k not in geoms]
+    need = [k for k in dict.fromkeys([(i, rot) for i, rot, _ in todo] + list(solve)) if k not in geoms]
+
+    def geometry_job(key) -> tuple:
+        i, rot = key
+        return sources[i].man, sources[i].rig, cam, rot
+
     if pool is None:
-        _solve_geometries(None, sources, cam, need, geoms)
+        for key in need:
+            geoms[key] = rotation_geometry(*geometry_job(key))
         need = []
 
     def jobs() -> Iterator[tuple]:
@@ -374,15 +388,23 @@ def _measured_units(pool, sources: list[_Source], order, cam: CameraCalibration,
 
         def start_next() -> None:
             if need and not solving:
-                i, rot = key = need.pop(0)
-                solving.append((key, pool.submit(_geometry_in_worker, sources[i].man, sources[i].rig, cam, rot)))
+                key = need.pop(0)
+                solving.append((key, pool.submit(_geometry_in_worker, *geometry_job(key))))
+
+        def wait_one(ahead: list) -> None:
+            key, fut = solving.pop()
+            if ahead:
+                _read_ahead([p for i, rot, led in ahead for p in sources[i].sequence_files(rot, led)])
+            geoms[key] = fut.result()
+            start_next()
+
         start_next()
-        for i, rot, led in todo:
+        for n, (i, rot, led) in enumerate(todo):
             while (i, rot) not in geoms:
-                key, fut = solving.pop()
-                geoms[key] = fut.result()
-                start_next()
+                wait_one(todo[n:n + max(1, pool.workers)])
             yield sources[i].man, sources[i].rig, geoms[(i, rot)], rot, led, lamps, estimator
+        while solving:                # the geometries of ``solve`` no unit needed
+            wait_one([])
 
     computed = ordered_results(pool, measure_unit if pool is None else _unit_in_worker, jobs())
     todo_set = set(todo)
@@ -396,6 +418,35 @@ def _measured_units(pool, sources: list[_Source], order, cam: CameraCalibration,
             df = store.load(name)
         bar.update(1)
         yield df
+    for _ in computed:                # nothing is left but the geometries of ``solve``: solve them
+        pass
+
+
+def _read_ahead(paths: list[Path]) -> None:
+    """Ask the kernel, from a daemon thread, to read ``paths`` into the page cache
+    (``posix_fadvise`` WILLNEED; nothing where the system lacks it): the files a unit will read
+    are on their way from disk while this process waits for a geometry. The pages are read
+    once; the unit then finds them in memory."""
+    import threading
+
+    advise = getattr(os, "posix_fadvise", None)
+    if advise is None or not paths:
+        return
+
+    def run() -> None:
+        for p in paths:
+            try:
+                fd = os.open(p, os.O_RDONLY)
+            except OSError:
+                continue                # the unit's own read names the file
+            try:
+                advise(fd, 0, 0, os.POSIX_FADV_WILLNEED)
+            except OSError:
+                pass
+            finally:
+                os.close(fd)
+
+    threading.Thread(target=run, name="read-ahead", daemon=True).start()
 
 
 def _unit_in_worker(*args) -> pd.DataFrame:
@@ -449,8 +500,8 @@ def measure_capture(folder, cam: CameraCalibration, lamps: dict[int, np.ndarray]
     bar = tqdm(total=len(order), desc=f"extract {Path(folder).name}", unit="LED", disable=not progress_enabled(progress))
     geoms: dict = {}
     with _pool(workers, len(order)) as pool:
-        _solve_geometries(pool, [src], cam, [(0, rot) for rot in src.man.rotations()], geoms)
-        frames = list(_measured_units(pool, [src], order, cam, lamps, estimator, store, geoms, bar))
+        frames = list(_measured_units(pool, [src], order, cam, lamps, estimator, store, geoms, bar,
+                                      solve=[(0, rot) for rot in src.man.rotations()]))
     bar.close()
     return Measured(pd.concat(frames, ignore_index=True), str(src.man.rig_path()),
                     {rot: g for (_, rot), g in geoms.items()})
@@ -600,7 +651,8 @@ def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: di
 
     ``workers``: processes measuring (rotation, LED) units at once (None: every usable
     core, :func:`glossrig.core.workers.usable_cores`; 1: all in this process). Streamed:
-    each unit of the sample is measured next to the reference's, the pair is divided
+    each unit of the sample is measured next to the reference's (:data:`REFERENCE_LAG`
+    units ahead of it), the pair is divided as soon as both are measured
     (:func:`normalize_unit`), its dynamic-range report made and only the samples' columns
     kept, so memory holds the output table plus a few units at a time whatever the number
     of LEDs, not both captures' full tables. The table (rows sorted by LED, then rotation,
@@ -616,7 +668,7 @@ def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: di
                _open_source(mr, "REF_DIR", "extract", "reference-")]
     s_units = sources[0].units()
     extra = [u for u in sources[1].units() if u not in set(s_units)]
-    order = [(i, rot, led) for rot, led in s_units for i in (0, 1)] + [(1, rot, led) for rot, led in extra]
+    order = _paired_order(s_units, REFERENCE_LAG) + [(1, rot, led) for rot, led in extra]
     exposures = {"sample": _exposures(ms), "reference": _exposures(mr)}
     bar = tqdm(total=len(order), desc=f"extract {ms.folder.name} + {mr.folder.name}", unit="LED",
                disable=not progress_enabled(progress))
@@ -655,6 +707,27 @@ def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: di
         write_plots(Path(plots), pd.concat(plotted, ignore_index=True), res)
         write_dynamic_range(Path(plots), report, res)
     return res
+
+
+#: how many sample units are measured beyond a unit before its reference unit
+#: (:func:`_paired_order`). With 1 the jobs run s1 s2 r1 s3 r2 ...: the reference's geometry,
+#: solved once the sample's is, runs beside s1 and s2 (a full-resolution geometry takes about
+#: two units' time) instead of beside a worker idling until r1 may start (issue 19)
+REFERENCE_LAG = 1
+
+
+def _paired_order(units: list[tuple[float, int]], lag: int) -> list[tuple[int, float, int]]:
+    """(capture, rotation, LED) jobs of a sample (capture 0) and reference (capture 1) with the
+    same ``units``: each sample unit, and each reference unit ``lag`` sample units after its
+    own sample unit (always after it: :func:`extract_samples` divides a pair as its reference
+    arrives)."""
+    order = []
+    for k, (rot, led) in enumerate(units):
+        order.append((0, rot, led))
+        if k >= lag:
+            order.append((1, *units[k - lag]))
+    order += [(1, rot, led) for rot, led in units[max(0, len(units) - lag):]]
+    return order
 
 
 def _exposures(man: Manifest) -> list[float]:

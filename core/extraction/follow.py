@@ -41,6 +41,7 @@ import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -92,7 +93,7 @@ def unit_record(man: Manifest, rotation: float, led: int) -> list[dict]:
     calibration images (:func:`glossrig.core.calibration.poses.calibrate_capture` reads them)
     and the LED's sequence images (:func:`glossrig.core.extraction.extract.led_values`)."""
     return ([im.to_json() for im in man.select("calibration", rotation=rotation)]
-            + [im.to_json() for im in man.select("sequence", rotation=rotation) if im.leds == [led]])
+            + [im.to_json() for im in ex.led_sequence(man, rotation, led)])
 
 
 def unit_ready(man: Manifest, rotation: float, led: int, planned: set[tuple[int, float]]) -> bool:
@@ -100,7 +101,7 @@ def unit_ready(man: Manifest, rotation: float, led: int, planned: set[tuple[int,
     (repeat, exposure) of the LED's sequences."""
     if not man.select("calibration", rotation=rotation):
         return False
-    have = {(im.repeat, float(im.exposure_s)) for im in man.select("sequence", rotation=rotation) if im.leds == [led]}
+    have = {(im.repeat, float(im.exposure_s)) for im in ex.led_sequence(man, rotation, led)}
     return planned <= have
 
 
@@ -158,11 +159,12 @@ def follow_extract(sample_dir, reference_dir, cam: CameraCalibration, lamps: dic
                    albedo: float = 0.8, estimator: str = "ml", resume: bool = False,
                    idle_timeout_s: float = IDLE_TIMEOUT_S, poll_s: float = 1.0, progress: bool = False, plots=None,
                    workers: int | None = None, clock: Callable[[], float] = time.monotonic,
-                   sleep: Callable[[float], None] = time.sleep) -> tuple[pd.DataFrame, list[WorkStore]]:
+                   sleep: Callable[[float], None] = time.sleep) -> Followed:
     """Extract the BRDF samples of a capture being taken (module docstring): the table of
-    :func:`glossrig.core.extraction.extract.extract_samples` for the finished capture, and
-    the work stores (the follow store and the extraction's, both beside ``out``) for the
-    caller to remove once the table is written. ``resume`` reuses the units of an earlier
+    :func:`glossrig.core.extraction.extract.extract_samples` for the finished capture, the
+    work stores (the follow store and the extraction's, both beside ``out``) for the
+    caller to remove once the table is written, and both captures' manifests as the table
+    was made from them (for its provenance; not read again). ``resume`` reuses the units of an earlier
     follow (or extraction) of the same inputs. ``workers``: processes of the final extraction
     (:func:`glossrig.core.extraction.extract.extract_samples`); while following, units are
     measured here as they become ready."""
@@ -215,15 +217,26 @@ def follow_extract(sample_dir, reference_dir, cam: CameraCalibration, lamps: dic
                              "(glossrig capture/simulate --resume) and rerun this command with --resume",
                              path=sample_dir / MANIFEST)
         sleep(poll_s)
-    return _finish(sample_dir, reference_dir, cam, lamps, out, units, albedo=albedo, estimator=estimator,
+    return _finish(man, ref, cam, lamps, out, units, albedo=albedo, estimator=estimator,
                    resume=resume, progress=progress, plots=plots, workers=workers)
 
 
-def _finish(sample_dir: Path, reference_dir: Path, cam, lamps, out, units: _Units, *, albedo: float, estimator: str,
-            resume: bool, progress: bool, plots, workers: int | None) -> tuple[pd.DataFrame, list[WorkStore]]:
-    """The finished capture: hand every unit whose record is the finished manifests' to
-    the extraction's work store, then extract with it (the remaining units measured there)."""
-    ms, mr = load_manifest(sample_dir), load_manifest(reference_dir)        # the finished captures', read once
+class Followed(NamedTuple):
+    """What :func:`follow_extract` made: the samples ``table``, the work ``stores`` to remove
+    once it is written, and the finished ``sample`` and ``reference`` manifests it was made from."""
+
+    table: pd.DataFrame
+    stores: list[WorkStore]
+    sample: Manifest
+    reference: Manifest
+
+
+def _finish(ms: Manifest, mr: Manifest, cam, lamps, out, units: _Units, *, albedo: float, estimator: str,
+            resume: bool, progress: bool, plots, workers: int | None) -> Followed:
+    """The finished capture (``ms``: its manifest as the last poll read it, marked complete, so
+    final; ``mr``: the reference's, complete from the start): hand every unit whose record is
+    the finished manifests' to the extraction's work store, then extract with it (the remaining
+    units measured there)."""
     fp = ex.measurement_fingerprint(ms, mr, cam, lamps, estimator=estimator)
     store = WorkStore(work_folder_for(out), fp, resume=resume)
     handed, total = 0, 0
@@ -237,4 +250,4 @@ def _finish(sample_dir: Path, reference_dir: Path, cam, lamps, out, units: _Unit
     _log.info(f"follow: capture complete; {handed} of {total} units were measured while it ran")
     df = ex.extract_samples(ms, mr, cam, lamps, albedo=albedo, estimator=estimator,
                             progress=progress, plots=plots, store=store, workers=workers)
-    return df, [store, units.store]
+    return Followed(df, [store, units.store], ms, mr)
