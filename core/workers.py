@@ -90,6 +90,14 @@ class WorkerPool(ProcessPoolExecutor):
         super().__init__(max_workers=workers, **kwargs)
         self.workers = workers
 
+    def terminate(self) -> None:
+        """Stop at once: terminate the worker processes (a running job is not waited for, as
+        ``shutdown`` would) and shut the pool down. For an error or an interruption in the
+        caller, whose workers' results are no longer wanted."""
+        for proc in list((getattr(self, "_processes", None) or {}).values()):
+            proc.terminate()
+        self.shutdown(wait=True, cancel_futures=True)
+
 
 def process_pool(workers: int) -> WorkerPool:
     """A pool of ``workers`` single-threaded (:func:`single_threaded`) spawned processes."""

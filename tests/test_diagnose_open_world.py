@@ -13,10 +13,15 @@ import pytest
 from glossrig.core.diagnose.catalogue import KINDS, BrdfModel, CauseResult, brdf_causes
 from glossrig.core.diagnose.error_model import fit_misfit, huber_sigma, misfit_features, unit_scale
 from glossrig.core.diagnose.flexible import describe, hat_basis
-from glossrig.core.diagnose.report import read_report, verdict, write_report
-from glossrig.core.diagnose.unexplained import open_world_verdict, structure_test, unexplained
+from glossrig.core.diagnose.report import final_verdict, ranking, read_report, verdict, write_report
+from glossrig.core.diagnose.unexplained import (bin_factor, open_world_verdict, retested_cause,
+                                                structure_test, training_bins, unexplained)
 
 from test_diagnose import synthetic_brdf
+
+#: the effect bound of the former in-sample open-world rule (relative spread of the bin means; it was
+#: significant with chi^2 p below the level and an effect above this)
+EFFECT_MIN_FORMER = 0.02
 
 
 # ----------------------------------------------------------------- error model
@@ -144,6 +149,44 @@ def test_null_table_leaves_no_unexplained_structure():
     assert open_world_verdict(verdict(causes), None, ue) == "none"
 
 
+def test_training_bins_and_bin_factor():
+    """Bins come from the training rows only (held-out rows beyond their range take the edge bin, a
+    value they never took none); the fitted relative correction of a noise-free step is the step."""
+    x = np.r_[np.linspace(0.0, 1.0, 1000), 2.0, np.nan]
+    train = np.r_[np.ones(1000, bool), False, False]
+    idx, nb = training_bins(x, train)
+    assert nb == 10 and idx[-2] == 9 and idx[-1] == -1 and idx[0] == 0
+    d, nd = training_bins(np.array([5.0, 6.0, 7.0, 9.0]), np.array([True, True, True, False]))
+    assert nd == 3 and d.tolist() == [0, 1, 2, -1]
+    pred = 2.0 + np.nan_to_num(x)
+    res = pred * 0.05 * (np.nan_to_num(x) >= 0.5)
+    g = bin_factor(idx, nb, res, pred, np.ones_like(pred), train)
+    np.testing.assert_allclose(g[:-1], 0.05 * (x[:-1] >= 0.5), atol=1e-12)
+    assert g[-1] == 0.0
+
+
+def test_structure_that_does_not_transfer_across_leds_is_not_significant():
+    """A 5 % bump in a band of distance from the optical centre that lies elsewhere under each LED
+    (as a glossy material's misfit follows its highlight across the image): on all rows its bin means
+    are far from zero and spread by more than the former effect bound (the former in-sample rule, chi^2
+    p below its level and effect above EFFECT_MIN_FORMER, called it significant), but a function of the
+    distance fitted on one LED predicts the other LED worse: not significant, and no verdict."""
+    from glossrig.core.diagnose.catalogue import vignetting_factor
+
+    data, ward = synthetic_brdf(40)
+    t = data.table
+    r = np.sqrt(vignetting_factor(t["u"] + 1.0, t["v"] + 1.0, data.image_size, data.principal_point))
+    lo = np.where(t["led"] == t["led"].min(), np.quantile(r, 0.2), np.quantile(r, 0.6))
+    t["f"] = t["f"] * (1 + 0.05 * ((r > lo) & (r < lo + 0.1 * np.ptp(r))))
+    m = BrdfModel.build(data, ward)
+    causes = brdf_causes(m)
+    ue = unexplained(m, after=retested_cause(causes, verdict(causes)))
+    e = next(x for x in ue if x["variable"] == "distance_from_optical_centre" and not x.get("after"))
+    assert e["p"] < 1e-10 and e["effect"] > EFFECT_MIN_FORMER, e
+    assert not e["significant"] and e["gain"] < 0 and min(e["fold_gains"]) < 0, e
+    assert final_verdict(causes, ue) == verdict(causes) == "none", [(x["variable"], x["gain"]) for x in ue]
+
+
 def _cause(name, gain, space="brdf", sig=True, blocked=None):
     c = CauseResult(name, space, "doc", {"x": 1.0}, {"x": 0.1}, 1.0 - gain, 1.0,
                     [gain, gain] if sig else [gain, -gain], 0)
@@ -156,8 +199,10 @@ def test_verdict_rules_and_report_fields(tmp_path):
     ggx = _cause("ggx_lobe", 0.3)
     stray = _cause("stray_light", 0.5, blocked="flexible_material")
     assert verdict([flex, stray]) == "flexible_material"           # blocked instrument cause is not named
-    assert verdict([flex, ggx, stray]) == "ggx_lobe"                 # a named material model reaches half its gain
-    assert verdict([flex, _cause("ggx_lobe", 0.1), stray]) == "flexible_material"
+    assert verdict([flex, ggx, stray]) == "flexible_material"        # the material model that predicts best
+    assert verdict([_cause("flexible_material", 0.2), ggx, stray]) == "ggx_lobe"
+    assert [c.name for c in ranking([ggx, stray, _cause("hot_pixels", 0.2, "pixels"), flex])] == [
+        "hot_pixels", "flexible_material", "ggx_lobe"]                  # sensor first, then by gain; blocked left out
     assert verdict([_cause("black_level_offset", 0.01, "frames"), flex]) == "black_level_offset"
     entry = {"variable": "axis_position", "space": "brdf", "effect": 0.05, "p": 1e-30, "significant": True}
     flat = dict(entry, variable="theta_h", effect=0.001, p=0.5, significant=False)
@@ -173,6 +218,7 @@ def test_verdict_rules_and_report_fields(tmp_path):
     assert [u["variable"] for u in d["unexplained"]] == ["axis_position", "theta_h"]
     assert set(d["unexplained"][0]) >= {"variable", "effect", "significant"}
     assert d["calibration"]["heldout_error"] == pytest.approx(1.02)
+    assert d["ranking"] == ["flexible_material"]                      # the blocked stray light is not ranked
     assert "axis_position" in (tmp_path / "report.md").read_text()
     json.dumps(d)
 

@@ -120,6 +120,25 @@ def test_ordered_results_keep_job_order_whatever_finishes_first():
     assert list(ordered_results(None, _slow_square, jobs[:2])) == [0, 1]
 
 
+def test_a_terminated_pool_stops_a_running_job_at_once():
+    """WorkerPool.terminate (diagnose's frame stage on an error in the caller): the running
+    60 s job is not waited for and no worker process is left behind."""
+    import multiprocessing
+    import time
+
+    from glossrig.core.workers import process_pool
+
+    pool = process_pool(1)
+    fut = pool.submit(_slow_square, 3, 60.0)
+    t0 = time.monotonic()
+    while not fut.running() and time.monotonic() - t0 < 30:
+        time.sleep(0.05)
+    t1 = time.monotonic()
+    pool.terminate()
+    assert time.monotonic() - t1 < 20 and not multiprocessing.active_children()
+    assert not fut.done() or fut.exception() is not None or fut.cancelled()
+
+
 def test_reference_units_follow_their_sample_units_by_the_lag():
     """extract_samples divides a pair when its reference unit arrives, so every reference unit
     must come after its sample unit; with a lag of k, k further sample units come between

@@ -245,17 +245,29 @@ def test_diagnose_resumes_an_interrupted_run_and_writes_the_same_report(caps, tm
 
     args = [*map(str, _inputs(caps)), "--no-progress"]
     full, part = tmp_path / "full", tmp_path / "part"
-    real_frames, real_brdf = dg.frame_causes, dg.brdf_causes
+    real_frames, real_brdf = dg.FrameStage, dg.brdf_causes
 
-    def interrupted(fd):
-        raise KeyboardInterrupt
+    class Interrupted:
+        """The frame-space stage's worker, interrupted (Ctrl-C) while the BRDF-space causes finish."""
 
-    monkeypatch.setattr(dg, "frame_causes", interrupted)
+        def __init__(self, *a, **k):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def result(self):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(dg, "FrameStage", Interrupted)
     assert main(["diagnose", *args, "--out", str(part)]) == 130
     assert not part.exists()
     assert {"brdf_causes", "material_fit"} <= {p.stem for p in work_folder_for(part).glob("*.pkl")}
-    monkeypatch.setattr(dg, "frame_causes", real_frames)
-    monkeypatch.setattr(dg, "brdf_causes", lambda m: pytest.fail("BRDF-space causes were recomputed"))
+    monkeypatch.setattr(dg, "FrameStage", real_frames)
+    monkeypatch.setattr(dg, "brdf_causes", lambda m, log=None: pytest.fail("BRDF-space causes were recomputed"))
     assert main(["diagnose", *args, "--out", str(part), "--resume"]) == 0
     assert not work_folder_for(part).exists()
     monkeypatch.setattr(dg, "brdf_causes", real_brdf)

@@ -4,8 +4,8 @@ Fits the forward model to the capture (geometry from the calibrations, the
 material from a Ward fit of this capture or --fit, the sensor from the raws),
 then fits every named cause of the catalogue (stray_light, vignetting,
 sample_rotation_offset, fresnel, led_emission, led_position_error,
-sample_radius_error and the material/reference models - ggx_lobe, beckmann_lobe,
-grazing_lobe, flexible_material, reference_brdf - in BRDF space; black_level_offset,
+sample_radius_error and the material models - ggx_lobe, beckmann_lobe,
+grazing_lobe, flexible_material - in BRDF space; black_level_offset,
 sensor_nonlinearity, channel_response, shutter_error, led_drift in frame space;
 hot_pixels in pixel space) on training folds and scores it on held-out folds split by LED, by
 pixel-row halves (per-LED parameters) or by exposure. Residuals are divided by a
@@ -17,7 +17,11 @@ residual remains that no cause explains (also when it remains in image or cylind
 position after the named instrument cause). A row that misses a colour channel
 (out of the capture's dynamic range) keeps its other channels; the missing one is
 predicted by that channel's base model (report.json meta.missing_channels).
-Writes REPORT_DIR/report.json ({"base_error", "calibration", "verdict",
+The verdict is the first of the eligible causes ranked sensor-level first, then by
+held-out gain (report.json "ranking"). With --reference-brdf, every sample is first
+renormalised with the reference's own BRDF at its angles (a calibration step, applied
+and reported in meta.reference_calibration, never a verdict).
+Writes REPORT_DIR/report.json ({"base_error", "calibration", "verdict", "ranking",
 "causes": [... each with its "kind"], "unexplained": [...]}, causes sorted by
 gain), report.md and the residual plots.
 
@@ -29,6 +33,11 @@ glossrig version. An interrupted run continues with the same command plus
 --resume: stages whose recorded inputs match are reused and the report equals an
 uninterrupted run's (meta.time_s apart). Without --resume an earlier work folder
 is discarded. The work folder is removed once the report is written.
+
+Progress: every stage says on stderr when it is done, with the elapsed wall and
+CPU time (``glossrig diagnose: ...``); where no progress bar is drawn (stderr not a
+terminal) each measured LED of the sample and the reference gets its own line.
+--no-progress (or -q) silences them.
 
 example:
   glossrig diagnose cap_sample --reference cap_ref --camera camera.json \\
@@ -53,7 +62,8 @@ def add_arguments(p) -> None:
     p.add_argument("--fit", default=None, help="a material fit from another capture (else fitted here)")
     p.add_argument("--albedo", type=float, default=0.8, help="reference albedo")
     p.add_argument("--reference-brdf", default=None,
-                   help="the reference's measured BRDF (RGL .bsdf): tests the non-Lambertian reference cause")
+                   help="the reference's measured BRDF (RGL .bsdf): renormalise every sample with it before the "
+                        "causes are tested (a calibration step, reported in report.json meta.reference_calibration)")
     p.add_argument("--out", required=True, help="report folder")
     add_force_option(p, "the files in a non-empty --out folder")
     p.add_argument("--resume", action="store_true",
@@ -62,10 +72,50 @@ def add_arguments(p) -> None:
     p.add_argument("--no-progress", action="store_true")
 
 
+class _Clock:
+    """Elapsed wall and CPU time since the verb started (the CPU of this process only: the worker
+    processes measuring the captures are not in it)."""
+
+    def __init__(self):
+        import time
+
+        self._time = time
+        self.t0, self.c0 = time.perf_counter(), time.process_time()
+
+    def __str__(self) -> str:
+        return f"{self._time.perf_counter() - self.t0:.0f} s, CPU {self._time.process_time() - self.c0:.0f} s"
+
+
+def logged_store(store_cls, say, clock, totals: dict):
+    """A subclass of the work store ``store_cls`` that says each measured (LED, rotation) unit as it
+    is saved: ``say`` gets "measured sample LED 5 at rotation 0 (3 of 8) (41 s, CPU 6 s)" (units
+    named ``sample-rot0-led5``; ``totals``: units per capture). Progress lines for a run whose
+    stderr is not a terminal, where no bar is drawn."""
+    import re
+
+    pat = re.compile(r"(sample|reference)-rot(-?[0-9.]+)-led([0-9]+)")
+
+    class Logged(store_cls):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            self.done: dict[str, int] = {}
+
+        def save(self, name, value):
+            super().save(name, value)
+            m = pat.fullmatch(name)
+            if m:
+                k = self.done[m[1]] = self.done.get(m[1], 0) + 1
+                say(f"measured {m[1]} LED {m[3]} at rotation {m[2]} ({k} of {totals.get(m[1], '?')}) ({clock})")
+    return Logged
+
+
 def run(args) -> int:
     from pathlib import Path
 
+    from glossrig.core.capture import load_manifest
     from glossrig.core.checkpoint import WorkStore, work_folder_for
+    from glossrig.core.extraction.extract import capture_units
+    from glossrig.core.progress import progress_enabled
     from glossrig.core.diagnose import diagnose
     from glossrig.core.extraction.extract import measurement_fingerprint
     from glossrig.core.calibration.intrinsics import load_camera
@@ -82,11 +132,19 @@ def run(args) -> int:
              "reference_brdf": args.reference_brdf}
     fp = measurement_fingerprint(args.sample, args.reference, load_camera(args.camera), load_lamps(args.lamps),
                                  files=extra, estimator="ml", albedo=args.albedo, fit_given=bool(args.fit))
-    store = WorkStore(work_folder_for(args.out), fp, resume=getattr(args, "resume", False),
-                      log=(lambda *a: None) if args.no_progress else _log.info)
+    say = (lambda *a: None) if args.no_progress else _log.info
+    clock = _Clock()
+    store_cls = WorkStore
+    if not args.no_progress and not progress_enabled():
+        # no bar on a pipe or a log file: one line per measured LED instead of minutes of silence
+        totals = {"sample": len(capture_units(load_manifest(args.sample))),
+                  "reference": len(capture_units(load_manifest(args.reference)))}
+        say(f"measuring the sample ({totals['sample']} LED x rotation units) and the reference "
+            f"({totals['reference']})")
+        store_cls = logged_store(WorkStore, say, clock, totals)
+    store = store_cls(work_folder_for(args.out), fp, resume=getattr(args, "resume", False), log=say)
     rep = diagnose(args.sample, args.reference, args.camera, args.lamps, args.out, fit=args.fit,
-                   albedo=args.albedo, progress=not args.no_progress,
-                   log=(lambda *a: None) if args.no_progress else _log.info, reference_brdf=ref, store=store)
+                   albedo=args.albedo, progress=not args.no_progress, log=say, reference_brdf=ref, store=store)
     store.remove()
     print(f"verdict: {rep['verdict']}")
     for c in rep["causes"][:5]:

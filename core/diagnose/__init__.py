@@ -6,10 +6,13 @@ statistics), computes residuals in BRDF space and in frame/pixel space, fits
 each named cause of :mod:`.catalogue` and :mod:`.frames` on training folds,
 scores it on held-out folds (split by LED or by exposure, never by random
 pixels) and names the winner, or "none" when no cause beats the stated
-threshold. :mod:`.report` writes report.json and report.md.
+threshold. :mod:`.report` writes report.json and report.md. With the reference's own BRDF
+the measured table is first renormalised with it - a calibration step that is applied and
+reported (``meta.reference_calibration``), not a cause (issue 14, item 4).
 """
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 
@@ -17,11 +20,11 @@ import numpy as np
 
 from glossrig.core.errors import InputError
 
-from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes
-from glossrig.core.diagnose.data import load_brdf, load_frames
-from glossrig.core.diagnose.frames import FrameSet, frame_causes
+from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes, one_blas_thread
+from glossrig.core.diagnose.data import load_brdf
+from glossrig.core.diagnose.frames import FrameStage, frame_stage
 from glossrig.core.diagnose.report import verdict, write_report
-from glossrig.core.diagnose.residuals import brdf_structure, frame_structure
+from glossrig.core.diagnose.residuals import brdf_structure
 from glossrig.core.diagnose.unexplained import retested_cause, unexplained
 
 #: base-model median |relative error| above which a given fit cannot be this capture's material
@@ -42,11 +45,28 @@ def load_fit(path):
 
 def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: float = 0.8,
              progress: bool = False, log=print, reference_brdf=None, reference_measured=None,
-             plots: bool = True, store=None) -> dict:
+             plots: bool = True, store=None, reference_source: str | None = None) -> dict:
     """``reference_brdf``: callable(samples table) -> (n, 3) RGB BRDF of the reference at the
-    rows' angles (e.g. :meth:`glossrig.twin.measured_brdf.MeasuredBRDF.table`), enabling the
-    reference_brdf cause. ``reference_measured``: the reference capture already measured
+    rows' angles (e.g. :meth:`glossrig.twin.measured_brdf.MeasuredBRDF.table`). When it is
+    given, renormalising with it is a calibration step, not a cause (issue 14, item 4): the
+    measured table is renormalised first, ``f = f_meas f_ref pi / albedo`` per channel
+    (thesis eq. 4.78 inverted, :func:`glossrig.core.diagnose.data.renormalise_table`), the base
+    material is fitted to the renormalised data and every cause is tested on it; report.json's
+    ``meta.reference_calibration`` records the step and its effect and report.md says it.
+    Without it the data keeps the thesis normalisation and no reference cause is tested (the
+    reference's angular shape cannot be told from the material's without its BRDF).
+    ``reference_source``: where the reference BRDF came from (a file), for the record; taken
+    from the callable's object (``MeasuredBRDF.path``) when not given.
+    ``reference_measured``: the reference capture already measured
     (:func:`glossrig.core.extraction.extract.measure_capture`) with the same camera and lamps.
+
+    ``fit``: a ``glossrig fit`` JSON from another capture of the material. It must predict this
+    capture's thesis-normalised data (a median miss below FIT_MISMATCH), and its lobe is then
+    kept fixed (``material_fixed``, which makes a sample rotation offset identifiable). A fit is
+    made on thesis-normalised data, so with a reference BRDF its lobe carries the reference's
+    angular error: it is then only checked against the thesis-normalised data, the material is
+    refitted to the renormalised data (the lobe comes from this capture, ``material_fixed``
+    stays False) and ``meta.reference_calibration.fit`` says so.
 
     ``store``: a :class:`glossrig.core.checkpoint.WorkStore` fingerprinted with every input
     of this diagnosis; each finished stage is kept there and reused (every LED of the
@@ -67,20 +87,31 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     stage = store.get_or_compute if store is not None else (lambda name, compute: compute())
     cam = load_camera(camera)
     lp = load_lamps(lamps)
+    if reference_brdf is not None and reference_source is None:
+        src = getattr(getattr(reference_brdf, "__self__", None), "path", None)
+        reference_source = str(src) if src is not None else getattr(reference_brdf, "__qualname__", "given")
     data = load_brdf(sample_dir, reference_dir, cam, lp, albedo=albedo, progress=progress,
-                     reference=reference_measured, store=store)
-    data.reference_brdf = reference_brdf
+                     reference=reference_measured, store=store, reference_brdf=reference_brdf,
+                     reference_source=reference_source)
     log(f"measured {len(data.table)} BRDF samples ({took()})")
+    cal = data.reference_calibration
+    if cal is not None:
+        log("reference calibration: data renormalised with the reference's own BRDF, median change "
+            + ", ".join(f"{c} {e['median']:+.1%}" for c, e in cal["effect"].items() if e))
     t = data.table
     if fit is not None:
         w = load_fit(fit)
         f = ward_from_angles(t.theta_in, t.theta_out, t.theta_h, t.phi_h, w)
-        rel = np.nanmedian(np.abs(t.f / np.maximum(f, 1e-9) - 1))      # rows with every channel
+        rel = np.nanmedian(np.abs(t.f_thesis / np.maximum(f, 1e-9) - 1))      # rows with every channel
         if not np.isfinite(rel) or rel > FIT_MISMATCH:
             raise InputError(f"the fit does not belong to this capture: its model misses the measured BRDF by a "
                              f"median {rel:.0%} (> {FIT_MISMATCH:.0%})", path=Path(fit))
-        data.material_fixed = True
-    else:
+        data.material_fixed = cal is None
+    if cal is not None:
+        cal["fit"] = ("material refitted to the renormalised data" + (
+            " (the given --fit, made on thesis-normalised data, was only checked against this capture)"
+            if fit is not None else ""))
+    if not data.material_fixed:
         # the point model, as every cause compares with (BrdfModel: ward_from_angles at the block's angles; the
         # footprint's effect is part of the calibrated model-error term), and no uncertainty budget: only the
         # parameters are used (the footprint fit and the GUM budget took most of diagnose's time)
@@ -93,14 +124,14 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
             f"range): kept, predicted by {e['predicted_by']}")
     log(f"base model's normalised held-out error {m.calibration.get('heldout_error', float('nan')):.3g} "
         f"(noise alone {m.calibration.get('heldout_error_noise_only', float('nan')):.3g}); fitting the BRDF-space causes")
-    causes = stage("brdf_causes", lambda: brdf_causes(m, log=log))
-    log(f"BRDF-space causes done ({took()})")
-
-    def frame_stage():
-        fd = load_frames(sample_dir, data.measured)
-        return frame_causes(fd), frame_structure(FrameSet(fd))
-
-    fcauses, fstructure = stage("frame_causes", frame_stage)
+    # the frame-space stage (the raws, the sensor and LED causes) runs in a worker process beside the
+    # BRDF-space causes: on a 2-core machine the two share the cores instead of taking turns
+    bg = FrameStage(sample_dir, data.measured) if store is None or not store.has("frame_causes") else None
+    with bg if bg is not None else contextlib.nullcontext():
+        causes = stage("brdf_causes", lambda: brdf_causes(m, log=log))
+        log(f"BRDF-space causes done{'; waiting for the frame-space causes' if bg is not None else ''} ({took()})")
+        fcauses, fstructure = stage("frame_causes", lambda: bg.result() if bg is not None
+                                    else frame_stage(sample_dir, data.measured, log=log))
     causes = causes + fcauses
     log(f"frame-space causes done ({took()})")
     structure = {"brdf": brdf_structure(m), "frames": fstructure}
@@ -110,13 +141,33 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     meta = {"sample": str(sample_dir), "reference": str(reference_dir), "camera": str(camera), "lamps": str(lamps),
             "fit": str(fit) if fit else None, "material": w.as_dict(), "material_from_capture": fit is None,
             "n_brdf_rows": int(len(m.rows)), "leds": sorted(int(x) for x in np.unique(t.led)),
-            "missing_channels": m.channel_fill,
+            "missing_channels": m.channel_fill, "reference_calibration": cal or {"applied": False},
             "splits": {"brdf": "leave one LED out (per-LED parameters or one LED: the two halves of the pixel rows)",
                        "frames": "even / odd exposure index", "pixels": "even / odd exposure index (pixel set found under every LED)"},
             "time_s": time.time() - t0}
     # a named BRDF-space cause must leave no structure where no material acts (unexplained.py)
-    open_world = unexplained(m, fstructure, after=retested_cause(causes, verdict(causes)))
+    with one_blas_thread():
+        open_world = unexplained(m, fstructure, after=retested_cause(causes, verdict(causes)))
     log(f"residual structure tested against {len(open_world)} variables; "
         f"{sum(e['significant'] for e in open_world)} carry structure no cause explains")
-    return write_report(out, causes, base, structure, meta, plots=plots, unexplained=open_world,
-                        calibration=m.calibration)
+    rep = write_report(out, causes, base, structure, meta, plots=plots, unexplained=open_world,
+                       calibration=m.calibration)
+    if cal is not None:
+        note_reference_calibration(Path(out) / "report.md", cal)
+    return rep
+
+
+def note_reference_calibration(md: Path, cal: dict) -> None:
+    """Say in report.md that the data was calibrated with the reference's own BRDF (issue 14,
+    item 4): a paragraph after the material line (report.py writes the rest of the report)."""
+    from glossrig.core.atomic import atomic_write_text
+
+    eff = "; ".join(f"{c} {e['median']:+.2%} (5-95 %: {e['p5']:+.2%} .. {e['p95']:+.2%})"
+                    for c, e in cal["effect"].items() if e)
+    para = [f"Reference calibration (applied, not a verdict): every sample renormalised with the reference's own "
+            f"BRDF (`{cal.get('source')}`), {cal['formula']}, albedo {cal['albedo']:g}. Median relative change "
+            f"of the data per channel: {eff}. {cal['fit'].capitalize()}; every cause below is tested on the "
+            "renormalised data."]
+    lines = md.read_text().splitlines()
+    at = next((i + 1 for i, x in enumerate(lines) if x.startswith("Material (")), 1)
+    atomic_write_text(md, "\n".join(lines[:at] + [""] + para + lines[at:]).rstrip("\n") + "\n")

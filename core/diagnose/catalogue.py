@@ -38,7 +38,6 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from glossrig.core.models.angles import ANGLE_COLUMNS
-from glossrig.core.extraction.cylinder import SurfaceSamples, sample_angles
 from glossrig.core.models.ward import WardParams, ward_from_angles
 
 from glossrig.core.diagnose.channels import fill_missing_channels
@@ -148,7 +147,8 @@ class BrdfModel:
         # a row missing a colour channel keeps its valid ones; the missing one is predicted (channels.py)
         c["y"], c["relvar"], m.channel_fill = fill_missing_channels(s, c["L"], c["relvar"])
         m.cols = c
-        c["sigma"] = m.noise()
+        with one_blas_thread():
+            c["sigma"] = m.noise()
         return m
 
     def noise(self):
@@ -296,9 +296,29 @@ def vignetting_factor(u, v, size, pp):
     return ((u - cx) ** 2 + (v - cy) ** 2) / rc2
 
 
+def one_blas_thread():
+    """A context in which the native BLAS / OpenMP pools run one thread (threadpoolctl).
+
+    The causes' linear algebra is small - weighted least squares of a few columns over <= 60 000
+    rows, dot products of such vectors - and a threaded BLAS only adds its threads' hand-over:
+    measured on this 2-core machine under load (load average ~20), ``r @ r`` of 53 000 rows took
+    8.2 ms of CPU with OpenBLAS's two threads and 0.02 ms with one, and one
+    :meth:`BrdfModel.solve_linear` 14.1 against 6.5 ms. One thread also leaves the other core to
+    work beside it."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1)
+
+
 def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
-    """Every BRDF-space cause, fitted and scored; ``log`` (callable(str)) gets one line per group
-    of causes as it finishes (progress)."""
+    """Every BRDF-space cause, fitted and scored; ``log`` (callable(str)) gets one line per cause
+    (per group of the material models) as it finishes (progress). Runs with one BLAS thread
+    (:func:`one_blas_thread`)."""
+    with one_blas_thread():
+        return _brdf_causes(m, log)
+
+
+def _brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
     import time
 
     t0, c0 = time.time(), time.process_time()
@@ -306,6 +326,11 @@ def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
 
     def took() -> str:
         return f"{time.time() - t0:.0f} s, CPU {time.process_time() - c0:.0f} s"
+
+    def done(results: list[CauseResult]) -> None:
+        """One progress line per cause as it finishes (a long loop says where it is)."""
+        for r in results:
+            say(f"  {r.name} fitted and scored ({took()})")
 
     c = m.cols
     d = m.data
@@ -323,6 +348,7 @@ def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
     ratio = np.sum((lamp - pts) ** 2, axis=1) / np.sum(lamp ** 2, axis=1)      # d^2 / D^2
     extra = ratio / (np.pi * np.maximum(c["cos_in"], 0.05))
     out.append(_linear_cause(m, "stray_light", doc, [one, c["L"], extra], "s", "fraction of the LED's direct irradiance"))
+    done(out[-1:])
 
     # ---- vignetting: multiplicative, scalar k
     q = vignetting_factor(c["u"] + 1.0, c["v"] + 1.0, d.image_size, d.principal_point)
@@ -333,24 +359,19 @@ def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
            "vignetted and the reference is not; it grows with the distance from the optical centre.")
     out.append(_scalar_cause(m, "vignetting", doc, lambda k: ([one, c["L"]], (1 - k * q) / (1 - k * qp)),
                              (-0.5, 0.9), "k", "relative fall-off at the corner"))
+    done(out[-1:])
 
-    # ---- sample rotation offset: scalar, recompute angles
-    geo = d.measured.geometry
-    lamps_rows: dict[tuple[int, float], np.ndarray] = {}
-
+    # ---- sample rotation offset: scalar, the lobe at the rotated tangent frame
     def lobe_rot(delta):
-        L = np.empty_like(c["L"])
-        for (led, rot), idx in lamps_rows.items():
-            s = SurfaceSamples(c["u"][idx], c["v"][idx], pts[idx], nrm[idx], geo[rot].surface.camera_centre,
-                               geo[rot].surface.axis)
-            ang = sample_angles(s, lamp_pos[led], rot + delta)
-            L[idx] = ward_from_angles(ang["theta_in"], ang["theta_out"], ang["theta_h"], ang["phi_h"], m.lobe)
-        return L
+        # turning the tangent frame by +delta about the normal (thesis eq. 4.62, counter-clockwise) leaves
+        # theta_in, theta_out and theta_h as they are and lowers every azimuth by delta, so the lobe is the
+        # Ward lobe at phi_h - delta. Before, every row's angles were recomputed from its surface point,
+        # normal, LED and camera (cylinder.sample_angles at rotation + delta): the same lobe to 4e-14
+        # relative (measured at delta = 5 and -13.37 deg on a sample_2_6 capture, 8 LEDs), at ~20 times
+        # the cost - half of the light and rotation causes' time.
+        return ward_from_angles(c["theta_in"], c["theta_out"], c["theta_h"],
+                                np.mod(c["phi_h"] - math.radians(delta), 2 * np.pi), m.lobe)
 
-    nrm = tab[["nx", "ny", "nz"]].to_numpy(float)
-    lamp_pos = d.lamps
-    for key, idx in tab.groupby(["led", "rotation"]).indices.items():
-        lamps_rows[(int(key[0]), float(key[1]))] = idx
     doc = ("Sample rotation offset: the sample is wrapped turned by delta from the rotation the capture states, "
            "which rotates its tangent frame about the normal and shifts phi_h (and the lobe's azimuth) by delta. "
            "With the material's lobe orientation fitted on the same capture, a global delta is the same as a "
@@ -358,7 +379,7 @@ def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
     cache = {}
 
     def make_rot(delta):
-        # on a 0.01-degree lattice, so that the folds' searches share the re-evaluated geometry (speed)
+        # on a 0.01-degree lattice, so that the folds' searches share the re-evaluated lobe
         key = round(float(delta), 2)
         if key not in cache:
             cache[key] = lobe_rot(key)
@@ -370,6 +391,7 @@ def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
         r.note = ("lobe_rotation was fitted on this capture, so a rotation offset is absorbed by it; "
                   "pass --fit from another capture of the material to test it")
     out.append(r)
+    done(out[-1:])
 
     # ---- Fresnel factor on the lobe (Schlick)
     doc = ("Fresnel reflectance on the specular lobe (Cook-Torrance; Schlick 1994): the lobe is multiplied by "
@@ -383,17 +405,21 @@ def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
 
     r = _scalar_cause(m, "fresnel", doc, make_fres, (1.1, 3.0), "n", "refractive index", grid_n=15)
     out.append(r)
+    done(out[-1:])
     from glossrig.core.diagnose.geometry import geometry_causes             # LED emission / position, sample radius
     from glossrig.core.diagnose.material_models import material_causes     # GGX lobe, the reference's own BRDF
 
     from glossrig.core.diagnose.flexible import flexible_cause, material_first
 
-    say(f"  light and rotation causes done ({took()})")
-    out = out + geometry_causes(m)
-    say(f"  rig geometry causes done ({took()})")
+    say(f"  light and rotation causes done; the rig geometry causes (LED position and emission, sample "
+        f"radius) next ({took()})")
+    out = out + geometry_causes(m, log=lambda r: done([r]))
+    say(f"  rig geometry causes done; the material and reference models next ({took()})")
+    k = len(out)
     out = out + material_causes(m)
-    say(f"  material and reference models done ({took()})")
+    done(out[k:])
     out = out + [flexible_cause(m)]
+    done(out[-1:])
     material_first(out)
     return out
 

@@ -40,7 +40,9 @@ class BrdfData:
     lamps: dict                   # LED id -> lamp position (holder frame, mm)
     material_fixed: bool = False  # True when the material fit comes from another capture
     camera: tuple | None = None   # (K, distortion) of the camera calibration
-    reference_brdf: object = None  # callable(table) -> (n, 3) RGB BRDF of the reference, when known
+    reference_brdf: object = None  # callable(table) -> (n, 3) RGB BRDF of the reference (material_causes' cause)
+    #: the calibration with the reference's own BRDF applied to ``table`` (:func:`renormalise_table`); None: not applied
+    reference_calibration: dict | None = None
 
 
 @dataclass
@@ -80,12 +82,18 @@ def _lum(df, prefix=""):
 
 
 def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progress: bool = False,
-              reference: Measured | None = None, store=None) -> BrdfData:
+              reference: Measured | None = None, store=None, reference_brdf=None,
+              reference_source: str | None = None) -> BrdfData:
     """Measure sample and reference alike and divide them (the pipeline's extraction),
     keeping the geometry columns the causes need. ``reference`` is the reference capture
     already measured with the same camera and lamps (a study reuses it across captures).
     ``store``: a :class:`glossrig.core.checkpoint.WorkStore` keeping each measured LED
-    (see :func:`glossrig.core.extraction.extract.measure_capture`)."""
+    (see :func:`glossrig.core.extraction.extract.measure_capture`).
+
+    ``reference_brdf``: callable(table) -> (n, 3) RGB BRDF of the reference at the rows'
+    angles. When given, the table is calibrated with it (:func:`renormalise_table`) before
+    anything else is derived from it, and ``reference_calibration`` records the step
+    (``reference_source`` names where the BRDF came from)."""
     from glossrig.core.extraction.extract import camera_arrays
 
     check_compatible(sample_dir, reference_dir, what="diagnose")
@@ -100,6 +108,10 @@ def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progre
         s[f"relvar_S_{c}"] = s[f"var_{c}"] / np.maximum(s[c], 1e-12) ** 2
     t = diffuse_normalize(s, mr.table, albedo=albedo)
     t = t.reset_index(drop=True)
+    t["f_thesis"] = _lum(t)         # the thesis-normalised luminance (eq. 4.78), kept for a --fit's check
+    cal = None
+    if reference_brdf is not None:
+        t, cal = renormalise_table(t, reference_brdf, albedo, source=reference_source)
     # luminance BRDF; NaN where a channel is missing (out of the capture's dynamic range): such a
     # row keeps its valid channels and BrdfModel.build predicts the missing one (issue 14, item 1)
     t["f"] = _lum(t)
@@ -120,7 +132,62 @@ def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progre
         ii, jj = np.nonzero(g.patch_mask)
         patch_uv[rot] = (g.crop[0] + float(jj.mean()), g.crop[1] + float(ii.mean()))
     return BrdfData(t, ms, albedo, tuple(fr.full_size), (cam.cx, cam.cy), patch_uv, dict(lamps),
-                    camera=camera_arrays(cam))
+                    camera=camera_arrays(cam), reference_calibration=cal)
+
+
+def renormalise_table(t: pd.DataFrame, reference_brdf, albedo: float, source: str | None = None
+                      ) -> tuple[pd.DataFrame, dict]:
+    """Calibrate a thesis-normalised table with the reference's own BRDF (issue 14, item 4).
+
+    The thesis divides by a Lambertian white of albedo 0.8 (eq. 4.78, ``f = (albedo/pi) S / R``);
+    the reference pixel records ``R ~ f_ref(wi, wo) cos(theta_in) E``, so the division leaves
+    ``(albedo/pi) f / f_ref``. Each channel is multiplied by ``k_c = f_ref,c pi / albedo`` at
+    the row's angles (:func:`glossrig.core.diagnose.material_models.renormalise`); its inverse
+    variance ``weight_<c>`` (of the BRDF value, :func:`~glossrig.core.extraction.extract.normalize_unit`)
+    by ``1 / k_c^2`` - f_ref is taken as exact, so relative variances are unchanged - and
+    ``weight`` is recomputed as their mean over the valid channels and rescaled to mean 1
+    (:func:`~glossrig.core.extraction.extract.scale_weights`). A channel whose ``f_ref`` is not a
+    positive finite number becomes missing (NaN) in that row, as a dark channel is.
+
+    Returns the new table and the record of the step: ``effect`` is, per channel, the median
+    relative change ``k_c - 1`` of the data over the rows with the channel, with its 5-95 %
+    spread (the spread is the angular part a fitted rho_d, rho_s cannot absorb)."""
+    from glossrig.core.diagnose.material_models import renormalise
+    from glossrig.core.extraction.extract import scale_weights
+
+    ref = np.asarray(reference_brdf(t), float)
+    if ref.shape != (len(t), 3):
+        raise InputError(f"the reference BRDF gave an array of shape {ref.shape} for {len(t)} rows (expected "
+                         f"({len(t)}, 3) RGB values)", path=Path(source) if source else None)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(ref) & (ref > 0)
+    k = np.where(ok, renormalise(np.ones_like(ref), np.where(ok, ref, 1.0), albedo), np.nan)
+    t = t.copy()
+    effect, lost = {}, {}
+    w = np.zeros(len(t))
+    nw = np.zeros(len(t))
+    for j, c in enumerate("rgb"):
+        had = np.isfinite(t[c].to_numpy(float))
+        t[c] = t[c].to_numpy(float) * k[:, j]
+        if f"weight_{c}" in t:
+            t[f"weight_{c}"] = t[f"weight_{c}"].to_numpy(float) / k[:, j] ** 2
+            wc = t[f"weight_{c}"].to_numpy(float)
+            valid = np.isfinite(t[c].to_numpy(float)) & np.isfinite(wc)
+            w += np.where(valid, wc, 0.0)
+            nw += valid
+        kc = k[had & ok[:, j], j]
+        lost[c] = int(np.sum(had & ~ok[:, j]))
+        effect[c] = ({"median": float(np.median(kc) - 1), "p5": float(np.percentile(kc, 5) - 1),
+                      "p95": float(np.percentile(kc, 95) - 1)} if kc.size else None)
+    if "weight" in t and all(f"weight_{c}" in t for c in "rgb"):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t["weight"] = np.where(nw > 0, w / np.maximum(nw, 1), np.nan)
+        t = scale_weights(t)
+    cal = {"applied": True, "source": source,
+           "formula": "f = f_meas * f_ref * pi / albedo per channel at each row's angles (thesis eq. 4.78 inverted)",
+           "albedo": float(albedo), "effect": effect, "effect_unit": "relative change of the data (k_c - 1)",
+           "rows_made_missing": lost}
+    return t, cal
 
 
 def valid_luminance(df, prefix="") -> np.ndarray:

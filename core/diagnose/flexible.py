@@ -9,7 +9,23 @@ beyond them) times a polynomial of degree one in theta_d (clamped to the trainin
     y = rho_d / pi + rho_s L(angles) + sum_j (b_j + c_j theta_d') B_j(theta_h)
 
 (the theta_d factor is off by default, :data:`THETA_D_TERM`: the material's departure is then
-taken as a function of theta_h alone, shared by all LEDs),
+taken as a function of theta_h alone, shared by all LEDs), plus a **reciprocal grazing term**
+
+    + sum_k g_k (G_k(theta_in) + G_k(theta_out)) / pi
+
+(hat functions G_k of the incidence and the viewing angle with one coefficient each, knots at
+quantiles of the training rows' theta_in and theta_out together). A grazing rise of a diffuse
+term (Oren & Nayar 1994; Burley 2012's F_D90 factor) is a function of theta_in and theta_out
+that theta_h does not follow, and within one LED's image both angles run over the cylinder, so
+it is learnt on the training LEDs and carried to the held-out one. The sum is symmetric in the
+two angles because every BRDF is (Helmholtz reciprocity); stray light, which adds a radiance
+independent of the viewing angle (a term in 1 / cos theta_in alone, scaled by each LED's
+distance), is not, so the flexible model cannot fully take its place (it can absorb the part of
+a 1 / cos theta_in rise that is symmetric; the blind study's stray-light trials check what
+remains), while a real material's
+grazing rise can no longer be blamed on it (issue 14: a nearly diffuse material whose only
+departure is a grazing rise was named ``stray_light`` when this term was missing;
+validation/diagnose/rgl_study.md, acrylic_felt_green),
 
 all coefficients linear (a small ridge on b, c settles what the training rows leave open:
 with one LED per fold theta_d barely varies and c stays ~0), fitted on the training folds (leave one LED out, as every
@@ -31,6 +47,7 @@ from __future__ import annotations
 import numpy as np
 
 N_KNOTS_H = 6           # hat functions along theta_h
+N_KNOTS_G = 5           # hat functions of the reciprocal grazing term, along theta_in and theta_out
 #: the theta_d factor (degree one). Off: leaving one LED out, the held-out LED's theta_d lies outside
 #: the training LEDs' range (two-LED captures: entirely), the term extrapolates and lost 7-13 %
 #: held-out on an ideal twin capture (sample_2_6, LEDs 6 and 9), against -0.1 % without it
@@ -60,18 +77,23 @@ def _knots(x, n) -> np.ndarray:
     return k if len(k) >= 2 else np.array([k[0], k[0] + 1e-3])
 
 
-def flexible_basis(theta_h, theta_d, train=None) -> np.ndarray:
+def flexible_basis(theta_h, theta_d, train=None, theta_in=None, theta_out=None) -> np.ndarray:
     """(n, K) columns of the smooth isotropic correction (BRDF units / pi), knots at quantiles
     of the ``train`` rows' angles and every row clamped into their range (a held-out LED
-    beyond the training angles gets the edge value: constant extrapolation)."""
+    beyond the training angles gets the edge value: constant extrapolation). With ``theta_in``
+    and ``theta_out``, the reciprocal grazing columns G_k(theta_in) + G_k(theta_out) follow."""
     train = np.ones(len(theta_h), bool) if train is None else train
-    Bh = hat_basis(theta_h, _knots(np.asarray(theta_h)[train], N_KNOTS_H))
-    if not THETA_D_TERM:
-        return Bh / np.pi
-    td = np.asarray(theta_d, float)
-    lo, hi = np.min(td[train]), np.max(td[train])
-    x = (np.clip(td, lo, hi) - 0.5 * (lo + hi)) / max(hi - lo, 1e-3)        # in [-1/2, 1/2] on the training rows
-    return np.concatenate([Bh, Bh * x[:, None]], axis=1) / np.pi
+    cols = [hat_basis(theta_h, _knots(np.asarray(theta_h)[train], N_KNOTS_H))]
+    if THETA_D_TERM:
+        td = np.asarray(theta_d, float)
+        lo, hi = np.min(td[train]), np.max(td[train])
+        x = (np.clip(td, lo, hi) - 0.5 * (lo + hi)) / max(hi - lo, 1e-3)    # in [-1/2, 1/2] on the training rows
+        cols.append(cols[0] * x[:, None])
+    if theta_in is not None and theta_out is not None:
+        ti, to = np.asarray(theta_in, float), np.asarray(theta_out, float)
+        knots = _knots(np.concatenate([ti[train], to[train]]), N_KNOTS_G)
+        cols.append(hat_basis(ti, knots) + hat_basis(to, knots))
+    return np.concatenate(cols, axis=1) / np.pi
 
 
 def fit_flexible(m, train, ridge: float = RIDGE):
@@ -80,7 +102,7 @@ def fit_flexible(m, train, ridge: float = RIDGE):
     training rows leave undetermined - the flexible columns sum to the constant of rho_d,
     which thus stays with rho_d). Returns (coefficients, prediction for all rows)."""
     c = m.cols
-    B = flexible_basis(c["theta_h"], c["theta_d"], train)
+    B = flexible_basis(c["theta_h"], c["theta_d"], train, c.get("theta_in"), c.get("theta_out"))
     X = np.column_stack([np.full_like(c["L"], 1 / np.pi), c["L"], B])
     sig = c["sigma"]
     A = X[train] / sig[train, None]
@@ -142,9 +164,10 @@ def flexible_cause(m):
     # model's), not from the flexible model, which is a function of theta_h by construction
     delta = c["y"] / np.maximum(pb, 1e-9) - 1
     desc = describe(delta, c)
-    doc = ("Flexible material: the Ward lobe plus a smooth non-parametric isotropic BRDF in the half/difference "
-           "angles (tensor-product hat functions in theta_h and theta_d, fitted on the training LEDs). It stands "
-           "for every smooth material departure from Ward; an instrument cause must beat it on held-out LEDs.")
+    doc = ("Flexible material: the Ward lobe plus a smooth non-parametric isotropic BRDF - hat functions in "
+           "theta_h and a reciprocal grazing term (the same hat functions of theta_in and of theta_out, one "
+           "coefficient each), fitted on the training LEDs. It stands for every smooth material departure from "
+           "Ward; an instrument cause must beat it on held-out LEDs.")
     params = {"follows": desc["variable"], "description": desc["description"], "effect": desc["effect"],
               "profile": desc["profile"], "rho_d": float(coef[0]), "rho_s": float(coef[1]),
               "unit": "relative departure from the Ward fit"}
@@ -161,7 +184,8 @@ def material_first(causes) -> None:
     is the material model with the lowest held-out error: the flexible one, or a named one
     (GGX, Beckmann, the grazing term, ...) where that predicts better - a grazing rise of the
     diffuse term is a function of theta_in and theta_out, which the flexible model's theta_h
-    alone does not follow, while stray light also rises toward grazing incidence."""
+    alone does not follow, while stray light also rises toward grazing incidence (the flexible
+    model's reciprocal grazing term follows both angles symmetrically, stray light only theta_in)."""
     mats = [c for c in causes if c.kind == "material" and c.space == "brdf"]
     if not mats:
         return

@@ -240,7 +240,10 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
     return r
 
 
-def geometry_causes(m: BrdfModel) -> list[CauseResult]:
+def geometry_causes(m: BrdfModel, log=None) -> list[CauseResult]:
+    """LED position error, LED emission and sample radius error; ``log`` (callable(CauseResult)) is
+    called as each finishes (progress)."""
+    say = log or (lambda r: None)
     geo = Geometry(m)
     leds = geo.leds
     nl = len(leds)
@@ -257,6 +260,7 @@ def geometry_causes(m: BrdfModel) -> list[CauseResult]:
         lambda x: float(np.sqrt(np.mean(np.square(x)))),
         lambda x: {"offset_mm": {str(k): [float(v) for v in x[3 * i:3 * i + 3]] for i, k in enumerate(leds)}},
         "mm (per LED, holder frame)", [k for k in leds for _ in range(3)]))
+    say(out[-1])
 
     # ---- LED emission pattern: cos^n about a tilted axis
     doc = ("LED emission pattern (thesis 4.1.3, fig. 4.2): the radiant intensity left after the diffuser falls as "
@@ -272,6 +276,7 @@ def geometry_causes(m: BrdfModel) -> list[CauseResult]:
         lambda x: {"n": float(x[0]), "tilt_deg": {str(k): [float(math.degrees(v)) for v in x[1 + 2 * i:3 + 2 * i]]
                                                   for i, k in enumerate(leds)}},
         "cos exponent n; axis tilt (up, side) degrees", [None] + [k for k in leds for _ in range(2)]))
+    say(out[-1])
 
     # ---- sample radius error: one global scalar (leave one LED out)
     doc = ("Sample radius error (thesis 4.1.4: paper and sample thickness): the wrapped sample's radius differs from "
@@ -291,4 +296,5 @@ def geometry_causes(m: BrdfModel) -> list[CauseResult]:
         return [one, L], F
 
     out.append(_scalar_cause(m, "sample_radius_error", doc, make_r, (-3.0, 3.0), "dr_mm", "mm", grid_n=13))
+    say(out[-1])
     return out

@@ -8,7 +8,9 @@ The named departures from that model, each a parameterised extension:
   Lambertian nor of albedo 0.8. The reference pixel records ``R ~ f_ref(wi, wo)
   cos(theta_in) E``, so the thesis's division gives ``(albedo/pi) f / f_ref``; with
   the reference's own BRDF ``f_ref`` at each sample's angles the correct value is
-  ``f_meas * f_ref * pi / albedo`` (per colour channel).
+  ``f_meas * f_ref * pi / albedo`` (per colour channel). ``glossrig diagnose`` applies it as a
+  calibration step when the reference's BRDF is supplied
+  (:func:`glossrig.core.diagnose.data.renormalise_table`), never as a verdict (issue 14, item 4).
 * **Lobe shape** (:func:`ggx_lobe`). Ward's lobe is a Beckmann-like Gaussian in
   tan(theta_h); measured materials have the long tails of the Trowbridge-Reitz
   (GGX) distribution (Walter et al., "Microfacet models for refraction through rough
@@ -30,8 +32,10 @@ The named departures from that model, each a parameterised extension:
 :func:`fit_lobe` fits ``rho_d / pi + rho_s * lobe`` with the objective of
 ``glossrig fit`` (eq. 4.81-4.82, :func:`glossrig.core.fitting.fit.peak_weight`), rho_d and
 rho_s solved linearly (variable projection) and the lobe's shape by trust-region
-least squares. :func:`material_causes` registers the lobe and reference causes in
-the diagnose catalogue.
+least squares. :func:`material_causes` registers the lobe causes in the diagnose catalogue
+(and the reference cause for a :class:`~glossrig.core.diagnose.data.BrdfData` that carries a
+``reference_brdf`` without being calibrated with it; :func:`glossrig.core.diagnose.diagnose`
+calibrates instead and never sets it).
 """
 from __future__ import annotations
 
@@ -371,9 +375,10 @@ def material_causes(m) -> list:
                              lambda f90: ([one * grazing_factor(c["theta_in"], c["theta_out"], f90), c["L"]], None),
                              GRAZING_F90_RANGE, "F_D90", "diffuse factor at grazing incidence and viewing"))
 
-    # ---- the reference's own BRDF instead of Lambertian albedo 0.8 (no extra parameter)
+    # ---- the reference's own BRDF instead of Lambertian albedo 0.8 (no extra parameter); never on data already
+    # calibrated with it (diagnose renormalises with a supplied reference BRDF and does not test it as a cause)
     ref = getattr(m.data, "reference_brdf", None)
-    if ref is not None:
+    if ref is not None and getattr(m.data, "reference_calibration", None) is None:
         doc = ("Non-Lambertian diffuse reference: the thesis divides by a Lambertian white of albedo 0.8 "
                "(eq. 4.78); the real reference's BRDF f_ref(wi, wo) varies with the angles and has another "
                "albedo, leaving a factor (albedo/pi) / f_ref on every measured value. Corrected with the "

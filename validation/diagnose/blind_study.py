@@ -25,7 +25,7 @@ for every material).
 Trial k (``plan(k)``): material ``MATERIALS[k mod 3]``, slot ``(k div 3) mod len(SLOTS)``: no
 effect, one cause of the catalogue, ``axis_step`` (answer: "unexplained" with the axis
 position as the variable carrying the structure) or two causes at once (PAIRS; answer: both
-among the two first causes of :func:`ranking`). Magnitudes are drawn from the trial's seed in
+among the two first causes of report.json's "ranking", :func:`glossrig.core.diagnose.report.ranking`). Magnitudes are drawn from the trial's seed in
 each cause's range (CAUSES). Captures: LEDs 6, 9, rotation 0, scale 0.25, ``--ideal``, seed
 1000 + k; twin effects by ``--effects``, rewritten ones afterwards. Then diagnose runs blind.
 Budget per trial: BRDF rows capped at ``ROWS``, frame pixels at ``PIXELS``, rows of the
@@ -83,7 +83,6 @@ PAIRS = (("black_level_offset", "vignetting"), ("sensor_nonlinearity", "stray_li
 SLOTS: tuple[tuple[str, ...], ...] = ((),) + tuple((c,) for c in CAUSES) + PAIRS
 #: the rewritten captures' shortest nominal exposure is 1/4000 s (Table 4.1): shutter errors of 8-32 % of it
 NULL_SEED = 5000      # independent null captures: seeds 5000 + j (trials use 1000 + k, the fits 999 - m)
-SENSOR_SPACES = ("frames", "pixels")
 
 
 def material_spec(m: str) -> str:
@@ -177,14 +176,6 @@ def true_magnitude(cause: str, value: float, cap: Path) -> float:
     return value
 
 
-def ranking(causes: list[dict]) -> list[str]:
-    """The report's causes in the order the verdict reads them: the eligible ones (significant,
-    not blocked by a material model), frame- and pixel-space causes first, each group by gain
-    (:func:`glossrig.core.diagnose.report.verdict` names the first)."""
-    el = [c for c in causes if c.get("eligible", c.get("significant"))]
-    return [c["name"] for c in sorted(el, key=lambda c: (c["space"] not in SENSOR_SPACES, -c["gain"]))]
-
-
 def run_diagnose(cap: Path, out: Path, a, fit: Path, ref) -> dict:
     """glossrig diagnose on one capture with the study's budget; a capture the pipeline
     refuses is a failed trial, kept as such."""
@@ -249,7 +240,7 @@ def trial(k: int, work: Path, a, bases: dict, ref) -> dict:
     sig_unexpl = sorted((e for e in rep.get("unexplained", []) if e.get("significant")), key=lambda e: -e["effect"])
     res = {"trial": k, "material": material, "hidden": hidden,
            "true_magnitude": {c: true_magnitude(c, v, cap) for c, v in hidden.items()},
-           "verdict": rep["verdict"], "ranking": ranking(rep["causes"]),
+           "verdict": rep["verdict"], "ranking": rep.get("ranking", []),
            "estimate": {c: by[c]["magnitude"] for c in hidden if c in by},
            "gain": {c: by[c]["gain"] for c in hidden if c in by},
            "significant": {c: by[c]["significant"] for c in hidden if c in by},

@@ -11,16 +11,21 @@ and aniso_roughconductor_beckmann.xml) are measured on the twin as the real rig 
 measure them: middle-row LEDs, scale 0.25, the real white paper
 (``measured:paper_white_rgb.bsdf``) as the diffuse reference, thesis normalisation
 (Lambertian reference of albedo 0.8). Each capture goes through ``glossrig extract``,
-``glossrig fit`` and ``glossrig diagnose`` (with ``--reference-brdf`` so that the reference
-cause can be tested). Then every model of :mod:`glossrig.core.diagnose.material_models`
-and every other extension diagnose can name is fitted to the extracted samples and scored
-against the true BRDF (:mod:`glossrig.twin.measured_brdf`, :mod:`glossrig.twin.mitsuba_material`)
-at the rig's angles, and the lobe models also on a held-out grid of directions the rig never
-saw (theta_d > 30 deg); the extension that gains most against the truth at the rig's angles
-is set beside diagnose's verdict (issue 14). Writes WORK/study.json, the plots and
-validation/diagnose/rgl_study.md.
+``glossrig fit`` and ``glossrig diagnose --reference-brdf``, which renormalises the data with
+the paper's own BRDF as a calibration step (issue 14, item 4) before it fits the Ward model and
+tests its causes. The study stands on the same footing: the data renormalised the same way
+(:func:`glossrig.core.diagnose.data.renormalise_table`), the baseline is the Ward model fitted
+to it, and each material extension diagnose can name (:mod:`glossrig.core.diagnose.material_models`,
+:mod:`glossrig.core.diagnose.flexible`) is fitted to it and scored against the true BRDF
+(:mod:`glossrig.twin.measured_brdf`, :mod:`glossrig.twin.mitsuba_material`) at the rig's angles;
+the one that gains most (or ``none``: no gain above TRUTH_GAIN_MIN) is set beside diagnose's
+verdict. The thesis-normalised fits and the lobe models on a held-out grid of directions the rig
+never saw (theta_d > 30 deg) are kept as findings about the reference's data error and about
+what the rig cannot see. Writes WORK/study.json, the plots and validation/diagnose/rgl_study.md.
 
-Resumable: every stage checks for its output and skips what exists. The camera and
+Resumable: every stage checks for its output and skips what exists; an analysis of another
+ANALYSIS_VERSION, and a diagnose report made with other core/diagnose sources (unless
+``--keep-diagnose``), are made again. The camera and
 lamp calibrations are made once (checkerboard and transparency-sheet captures) unless
 given.
 """
@@ -29,9 +34,12 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from glossrig.core.capture import capture_complete
+from glossrig.core.checkpoint import work_folder_for
 from glossrig.core.diagnose.report import read_report
 from validation.common import GlossrigFailed, calibrate, capture, extract, fit, glossrig
 from validation.paths import ROOT, rgl_dir
@@ -87,8 +95,10 @@ def calibrations(work: Path, a) -> tuple[Path, Path]:
 
 
 def captures(work: Path, a) -> dict:
-    """Reference and sample captures, then extract / fit / diagnose per material."""
+    """Reference and sample captures, then extract / fit per material, then the diagnoses
+    (``--jobs`` at a time: each a ``glossrig diagnose`` process)."""
     cam, lamps = calibrations(work, a)
+    todo = []
     ref = capture(work / "reference", f"measured:{REFERENCE}", a.scale, 3, all_rotations(a), 1, leds=a.leds)
     out = {}
     for k, m in enumerate(a.materials.split(",")):
@@ -107,14 +117,57 @@ def captures(work: Path, a) -> dict:
         if err is None and not fj.exists():
             err = _stage(fit, sp, fj)
             record(prov, f"{m}/fit")
-        if err is None and a.diagnose and not (dg / "report.json").exists():
-            err = _stage(glossrig, "diagnose", cap, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", dg,
-                         "--reference-brdf", REFERENCE, "--no-progress")
-            record(prov, f"{m}/diagnose")
+        stamp = work / f"{m}.diagnose.code"         # sha256 of the core/diagnose sources its run started with
+        stale = not (dg / "report.json").exists() or (
+            not a.keep_diagnose and (not stamp.exists() or stamp.read_text() != diagnose_code()))
+        if err is None and a.diagnose and stale:
+            todo.append((m, cap, dg, stamp))
         if err:
             out[m]["failed"] = err
             print(f"[{m}] {err}", flush=True)
+    lock = threading.Lock()
+
+    def run_diagnose(m, cap, dg, stamp):
+        code = diagnose_code()          # the sources the process about to start imports
+        # an interrupted diagnosis of the same sources resumes (glossrig diagnose --resume reuses the finished
+        # stages whose recorded inputs match); any other is made anew
+        resume = (not (dg / "report.json").exists() and work_folder_for(dg).is_dir() and stamp.exists()
+                  and stamp.read_text() == code)
+        if not resume:
+            shutil.rmtree(dg, ignore_errors=True)
+            shutil.rmtree(work_folder_for(dg), ignore_errors=True)
+            stamp.write_text(code)
+        print(f"[{m}] diagnose{' resumed' if resume else ''} (core/diagnose sources sha256 {code[:12]})", flush=True)
+        err = _stage(glossrig, "diagnose", cap, "--reference", ref, "--camera", cam, "--lamps", lamps, "--out", dg,
+                     "--reference-brdf", REFERENCE, "--no-progress", *(["--resume"] if resume else []))
+        with lock:
+            record(work / "provenance.json", f"{m}/diagnose")
+        if err is not None:
+            out[m]["failed"] = err
+        print(f"[{m}] diagnose " + (err or "done"), flush=True)
+
+    with ThreadPoolExecutor(max_workers=max(1, a.jobs)) as pool:
+        for f in [pool.submit(run_diagnose, *job) for job in todo]:
+            f.result()
     return out
+
+
+def diagnose_code() -> str:
+    """sha256 of the sources of glossrig.core.diagnose (every module of the package): a diagnosis made
+    with other sources is made again (unless --keep-diagnose); the commit the stage ran at is in
+    WORK/provenance.json, but uncommitted changes are not in a commit."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for f in sorted((ROOT / "core" / "diagnose").glob("*.py")):
+        h.update(f.name.encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()
+
+
+def found(work: Path, a) -> dict:
+    """``--report-only``: each material's files in WORK as :func:`captures` names them, nothing run."""
+    return {m: {"capture": str(work / m), "samples": str(work / f"{m}.parquet"), "fit": str(work / f"{m}.fit.json"),
+                "diagnose": str(work / f"{m}.diagnose")} for m in a.materials.split(",")}
 
 
 def _stage(step, *args) -> str | None:
@@ -167,8 +220,9 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
     from glossrig.core.diagnose import load_fit
     from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD
     from glossrig.core.diagnose.material_models import (LUMA, LobeFit, angle_arrays, fit_lobe, fit_weights,
-                                                        fresnel_profile, renormalise)
+                                                        fresnel_profile)
     from glossrig.core.diagnose.channels import fill_missing_channels
+    from glossrig.core.diagnose.data import renormalise_table
     from glossrig.core.fitting.fit import fit_samples
     from glossrig.core.samples import read_samples
     from glossrig.twin.measured_brdf import MeasuredBRDF
@@ -179,44 +233,48 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
     truth, paper = truth_of(m), MeasuredBRDF(REFERENCE)
     y_true = truth.table(t) @ LUMA
     rgb = t[["r", "g", "b"]].to_numpy(float)
-    corr = t.copy()
-    corr[["r", "g", "b"]] = renormalise(rgb, paper.table(t), ALBEDO)
+    # the calibration glossrig diagnose applies with --reference-brdf (data.renormalise_table: each channel
+    # times f_ref pi / albedo, weights rescaled), so that the study's baseline and extensions stand on its footing
+    corr, calibration = renormalise_table(t, paper.table, ALBEDO, source=str(REFERENCE))
     wd = load_fit(run["fit"])
+    wf = fit_samples(corr, channels=["luminance"]).fits["luminance"].to_json()
+    w_ref = LobeFit("ward", *(wf[k] for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")),
+                    stderr={k: wf.get(k + "_stderr") for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")})
     # a row missing a colour channel keeps the others; the missing one is predicted as diagnose does
-    # (glossrig.core.diagnose.channels: that channel's base model on the thesis fit's lobe)
+    # (glossrig.core.diagnose.channels: that channel's base model on the lobe of the material fit of that data)
     unit = LobeFit("ward", 0.0, 1.0, wd.alpha_x, wd.alpha_y, wd.lobe_rotation).predict(A)
     y0, _, fill = fill_missing_channels(t.assign(f=rgb @ LUMA), unit)
-    y1, _, _ = fill_missing_channels(corr.assign(f=corr[["r", "g", "b"]].to_numpy(float) @ LUMA), unit)
+    unit_ref = LobeFit("ward", 0.0, 1.0, w_ref.alpha_x, w_ref.alpha_y, w_ref.lobe_rotation).predict(A)
+    y1, _, _ = fill_missing_channels(corr.assign(f=corr[["r", "g", "b"]].to_numpy(float) @ LUMA), unit_ref)
     H = heldout_grid()
     y_held = truth.luminance(H["theta_in"], H["phi_in"], H["theta_out"], H["phi_out"])
 
     def score(f: LobeFit) -> dict:
         return {"params": f.as_dict(), "rig": errors(f.predict(A), y_true, A), "heldout": errors(f.predict(H), y_held, H)}
 
-    out = {"material": m, "n_samples": len(t), "theta_d_max_deg": float(np.degrees(A["theta_d"].max())),
-           "n_heldout": int(len(y_held)), "missing_channels": fill,
+    out = {"material": m, "version": ANALYSIS_VERSION, "n_samples": len(t),
+           "theta_d_max_deg": float(np.degrees(A["theta_d"].max())),
+           "n_heldout": int(len(y_held)), "missing_channels": fill, "reference_calibration": calibration,
            "data": {"thesis_normalised": errors(y0, y_true, A), "reference_renormalised": errors(y1, y_true, A)}}
     out["thesis"] = score(LobeFit.from_ward(wd))
-    wf = fit_samples(corr, channels=["luminance"]).fits["luminance"].to_json()
-    w_ref = LobeFit("ward", *(wf[k] for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")),
-                    stderr={k: wf.get(k + "_stderr") for k in ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")})
     out["reference"] = score(w_ref)
     rng = np.random.default_rng(0)
     rows = np.flatnonzero(np.isfinite(y0) & np.isfinite(y1))
     idx = np.sort(rng.choice(rows, min(a.fit_rows, rows.size), replace=False))
     As = {k: v[idx] for k, v in A.items()}
     W = fit_weights(t)[idx]
+    W1 = fit_weights(corr)[idx]         # the renormalised data's weights (its variances scale with f_ref^2)
     start = (w_ref.alpha_x, w_ref.alpha_y, w_ref.lobe_rotation)
     out["ggx_only"] = score(fit_lobe(As, y0[idx], W, "ggx", start))
-    g = fit_lobe(As, y1[idx], W, "ggx", start)
+    g = fit_lobe(As, y1[idx], W1, "ggx", start)
     out["reference_ggx"] = score(g)
     start = (g.alpha_x, g.alpha_y, g.lobe_rotation)
     led = np.asarray(t["led"])[idx]
     leds = np.unique(led)
     folds = [(~np.isin(led, leds[k::4]), np.isin(led, leds[k::4])) for k in range(min(4, len(leds)))]
-    prof = fresnel_profile(As, y1[idx], W, folds, FRESNEL_GRID, "ggx", start)
+    prof = fresnel_profile(As, y1[idx], W1, folds, FRESNEL_GRID, "ggx", start)
     e = np.array(prof["error"])
-    free = fit_lobe(As, y1[idx], W, "ggx", start, fit_n=True)
+    free = fit_lobe(As, y1[idx], W1, "ggx", start, fit_n=True)
     truth_err = [score(f)["heldout"]["median_abs_rel"] for f in prof["fits"]]
     flat = bool((e.max() - e.min()) / e.min() < GAIN_THRESHOLD)
     out["fresnel"] = {"grid": list(FRESNEL_GRID), "rig_heldout_error": e.tolist(),
@@ -225,24 +283,33 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
                       "folds": "leave two LEDs out (interleaved pairs)"}
     k = int(np.argmin(e))
     out["reference_ggx_fresnel"] = score(prof["fits"][k])
-    out.update(extension_fits(A, As, y0[idx], W, idx, LobeFit.from_ward(wd), score,
-                              lambda pred: errors(pred, y_true, A)))
+    out.update(extension_fits(A, As, y1[idx], W1, idx, w_ref, score, lambda pred: errors(pred, y_true, A)))
     out["extensions"] = truth_ranking(out)
     return out
 
 
-#: diagnose's material and reference causes -> the study's fit of the same extension to the capture's data
-EXTENSIONS = {"ggx_lobe": "ggx_only", "beckmann_lobe": "beckmann_only", "grazing_lobe": "grazing",
-              "fresnel": "ward_fresnel", "flexible_material": "flexible", "reference_brdf": "reference"}
+#: version of an analysis (WORK/MATERIAL.study.json): an analysis of another version is made again.
+#: 2: the extensions and their baseline fitted to the reference-renormalised data (diagnose's footing);
+#: 3: the flexible material model with its reciprocal grazing term (core/diagnose/flexible.py)
+ANALYSIS_VERSION = 3
+#: the baseline of the verdict check: the thesis Ward model fitted to the reference-renormalised data,
+#: as glossrig diagnose --reference-brdf fits it (core/diagnose/__init__.py)
+BASELINE = "reference"
+#: diagnose's material causes -> the study's fit of the same extension to the renormalised data
+#: (the reference's own BRDF is a calibration step in diagnose, not a cause: issue 14, item 4)
+EXTENSIONS = {"ggx_lobe": "reference_ggx", "beckmann_lobe": "beckmann", "grazing_lobe": "grazing",
+              "fresnel": "ward_fresnel", "flexible_material": "flexible"}
 
 
 def extension_fits(A: dict, As: dict, y, W, idx, ward, score, rig_errors) -> dict:
-    """Each extension diagnose can name, fitted to the thesis-normalised luminance of the rows ``idx``
-    (angles ``As``, weights ``W``; the objective of glossrig fit) and scored against the truth by
-    ``score`` (a lobe fit) or ``rig_errors`` (a prediction at every row): the Beckmann (Cook-Torrance)
-    lobe, the grazing term on the thesis fit's Ward lobe, Ward with Schlick's Fresnel factor, and the
+    """Each extension diagnose can name, fitted to the reference-renormalised luminance of the rows
+    ``idx`` (angles ``As``, weights ``W``; the objective of glossrig fit) - the data glossrig diagnose
+    --reference-brdf tests its causes on - and scored against the truth by ``score`` (a lobe fit) or
+    ``rig_errors`` (a prediction at every row): the Beckmann (Cook-Torrance) lobe, the grazing term on
+    the Ward lobe ``ward`` (the Ward fit of the same data), Ward with Schlick's Fresnel factor, and the
     flexible material model (:mod:`glossrig.core.diagnose.flexible`: the Ward lobe plus hat functions
-    in theta_h, knots from the fitted rows; at the rig's angles only)."""
+    in theta_h and the reciprocal grazing term, knots from the fitted rows; at the rig's angles only). The GGX lobe fitted to the same
+    data is the analysis' ``reference_ggx``."""
     import types
 
     import numpy as np
@@ -251,7 +318,7 @@ def extension_fits(A: dict, As: dict, y, W, idx, ward, score, rig_errors) -> dic
     from glossrig.core.diagnose.material_models import LobeFit, fit_lobe
 
     start = (ward.alpha_x, ward.alpha_y, ward.lobe_rotation)
-    out = {"beckmann_only": score(fit_lobe(As, y, W, "beckmann", start)),
+    out = {"beckmann": score(fit_lobe(As, y, W, "beckmann", start)),
            "grazing": score(fit_grazing(As, y, W, ward)),
            "ward_fresnel": score(fit_lobe(As, y, W, "ward", start, fit_n=True))}
     unit = LobeFit("ward", 0.0, 1.0, ward.alpha_x, ward.alpha_y, ward.lobe_rotation)
@@ -260,9 +327,10 @@ def extension_fits(A: dict, As: dict, y, W, idx, ward, score, rig_errors) -> dic
     train[idx] = True
     yy, sig = np.zeros(n), np.ones(n)
     yy[idx], sig[idx] = y, 1.0 / np.maximum(W, 1e-12)
-    cols = {"theta_h": A["theta_h"], "theta_d": A["theta_d"], "L": unit.predict(A), "y": yy, "sigma": sig}
+    cols = {"theta_h": A["theta_h"], "theta_d": A["theta_d"], "theta_in": A["theta_in"], "theta_out": A["theta_out"],
+            "L": unit.predict(A), "y": yy, "sigma": sig}
     coef, pred = fit_flexible(types.SimpleNamespace(cols=cols), train)
-    out["flexible"] = {"params": {"kind": "ward + hat functions in theta_h", "rho_d": float(coef[0]),
+    out["flexible"] = {"params": {"kind": "ward + hat functions in theta_h + reciprocal grazing term", "rho_d": float(coef[0]),
                                   "rho_s": float(coef[1]), "alpha_x": ward.alpha_x, "alpha_y": ward.alpha_y,
                                   "lobe_rotation": ward.lobe_rotation, "stderr": {}},
                        "rig": rig_errors(pred), "heldout": None}
@@ -304,12 +372,13 @@ def fit_grazing(a: dict, y, W, lobe):
 
 def truth_ranking(r: dict) -> dict:
     """Each extension's gain against the truth at the rig's angles (median |relative error| of the
-    thesis model -> of the extension) and the best one: the answer diagnose should give, or
-    "none" when no extension gains more than TRUTH_GAIN_MIN."""
-    e0 = r["thesis"]["rig"]["median_abs_rel"]
+    baseline - the Ward model fitted to the reference-renormalised data - to that of the extension
+    fitted to the same data) and the best one: the answer diagnose should give, or "none" when no
+    extension gains more than TRUTH_GAIN_MIN."""
+    e0 = r[BASELINE]["rig"]["median_abs_rel"]
     gains = {name: (e0 - r[key]["rig"]["median_abs_rel"]) / e0 for name, key in EXTENSIONS.items() if key in r}
     best = max(gains, key=lambda k: gains[k])
-    return {"thesis_rig_error": e0, "gain": gains, "best": best if gains[best] > TRUTH_GAIN_MIN else "none"}
+    return {"baseline_rig_error": e0, "gain": gains, "best": best if gains[best] > TRUTH_GAIN_MIN else "none"}
 
 
 def diagnose_summary(run: dict) -> dict | None:
@@ -322,31 +391,36 @@ def diagnose_summary(run: dict) -> dict | None:
                                               "params", "stderr", "note")} for c in rep["causes"]],
             "unexplained": [u for u in rep.get("unexplained", []) if u.get("significant")],
             "calibration": {k: rep.get("calibration", {}).get(k) for k in ("heldout_error", "heldout_error_noise_only")},
-            "time_s": rep.get("meta", {}).get("time_s"), "missing_channels": rep.get("meta", {}).get("missing_channels")}
+            "time_s": rep.get("meta", {}).get("time_s"), "missing_channels": rep.get("meta", {}).get("missing_channels"),
+            "reference_calibration": rep.get("meta", {}).get("reference_calibration")}
 
 
 def verdict_table(results: dict) -> list[str]:
     """Issue 14's check: per material, the extension that gains most against the truth at the rig's
     angles (or none: no gain above TRUTH_GAIN_MIN) beside diagnose's verdict made without ground truth."""
     L = ["## Verdict against the truth (issue 14)", "",
-         f"For each material: the thesis model's error against the truth at the rig's angles, each extension "
-         f"diagnose can name fitted to the capture's own data and scored against the truth at the same angles, "
-         f"and the best of them - the answer diagnose should give, or `none` when no extension lowers the error "
-         f"by more than {TRUTH_GAIN_MIN:.0%} - beside diagnose's verdict (made without the truth). Extensions: "
+         "On diagnose's footing: the capture's data renormalised with the paper's own BRDF (the calibration "
+         "`glossrig diagnose --reference-brdf` applies; not a cause). For each material: the baseline - the "
+         "thesis's Ward model fitted to the renormalised data - and its error against the truth at the rig's "
+         "angles, each extension diagnose can name fitted to the same renormalised data and scored against the "
+         "truth at the same angles (gain = relative reduction of the baseline's median |relative error|), and "
+         f"the best of them - the answer diagnose should give, or `none` when no extension lowers the error by "
+         f"more than {TRUTH_GAIN_MIN:.0%} - beside diagnose's verdict (made without the truth). Extensions: "
          + ", ".join(f"`{k}`" for k in EXTENSIONS) + ".", "",
-         "| material | thesis model error (rig) | gain of each extension vs truth | best vs truth | diagnose verdict "
-         "| match | instrument cause named | base held-out error |", "|---|---|---|---|---|---|---|---|"]
+         "| material | baseline error (rig) | gain of each extension vs truth | best vs truth | diagnose verdict "
+         "| match | instrument cause named | base held-out error | diagnose's reference calibration |",
+         "|---|---|---|---|---|---|---|---|---|"]
     n_ok = n_match = n_instr = 0
     for m, r in results.items():
         if m.startswith("_"):
             continue
         if "failed" in r or "extensions" not in r:
-            L.append(f"| {m} | {r.get('failed', 'not analysed')} | | | | | | |")
+            L.append(f"| {m} | {r.get('failed', 'not analysed')} | | | | | | | |")
             continue
         ex, d = r["extensions"], r.get("diagnose")
         gains = ", ".join(f"{k} {100 * g:+.1f} %" for k, g in sorted(ex["gain"].items(), key=lambda kv: -kv[1]))
         if d is None:
-            L.append(f"| {m} | {_pct(ex['thesis_rig_error'])} | {gains} | `{ex['best']}` | not run | | | |")
+            L.append(f"| {m} | {_pct(ex['baseline_rig_error'])} | {gains} | `{ex['best']}` | not run | | | | |")
             continue
         kinds = {c["name"]: c.get("kind") for c in d["causes"]}
         instrument = kinds.get(d["verdict"]) == "instrument"
@@ -355,9 +429,9 @@ def verdict_table(results: dict) -> list[str]:
         n_match += match
         n_instr += instrument
         cal = (d.get("calibration") or {}).get("heldout_error")
-        L.append(f"| {m} | {_pct(ex['thesis_rig_error'])} | {gains} | `{ex['best']}` | `{d['verdict']}` | "
+        L.append(f"| {m} | {_pct(ex['baseline_rig_error'])} | {gains} | `{ex['best']}` | `{d['verdict']}` | "
                  f"{'yes' if match else 'no'} | {'yes' if instrument else 'no'} | "
-                 f"{'n/a' if cal is None else f'{cal:.3g}'} |")
+                 f"{'n/a' if cal is None else f'{cal:.3g}'} | {_calibration(d.get('reference_calibration'))} |")
     L += ["", f"Diagnose's verdict matches the best extension against the truth on {n_match} of {n_ok} captures; "
           f"an instrument cause is named on {n_instr} of {n_ok} (none of these captures has an instrument effect).",
           ""]
@@ -469,17 +543,13 @@ def reading(results: dict) -> list[str]:
         d = r.get("diagnose")
         if not d:
             continue
-        c = {x["name"]: x for x in d["causes"]}
-        ref = c.get("reference_brdf")
-        verdicts.append(f"{m} `{d['verdict']}`" + (f" (reference_brdf gain {100 * ref['gain']:+.1f} %, "
-                                                    f"{'significant' if ref['significant'] else 'not significant'})"
-                                                    if ref else ""))
-    out.append("* **What diagnose sees without ground truth.** It scores each cause by held-out prediction error "
-               f"on the capture alone: {'; '.join(verdicts)}. The reference cause changes what is measured, not "
-               "only how well a model predicts it, so where the lobe misfit dominates the held-out error its gain "
-               "can be negative although the data error falls (for the paper measured against itself the "
-               "thesis-normalised data is exactly constant, so any correction can only lose): its benefit is "
-               "read from this ground-truth study.")
+        verdicts.append(f"{m} `{d['verdict']}` (calibration: {_calibration(d.get('reference_calibration'))})")
+    out.append("* **What diagnose sees without ground truth.** Given the paper's BRDF (`--reference-brdf`), "
+               "diagnose renormalises the data with it first - a calibration step it applies and reports "
+               "(report.json `meta.reference_calibration`), not a cause it may name - fits the Ward model to the "
+               "renormalised data and scores every cause by held-out prediction error on the capture alone: "
+               f"{'; '.join(verdicts) or 'not run'}. The check above compares those verdicts with the extensions "
+               "fitted to the same renormalised data and scored against the truth.")
     best = []
     for m, r in ok.items():
         k = min((k for k, _ in STAGES), key=lambda k: held(r, k))
@@ -490,23 +560,35 @@ def reading(results: dict) -> list[str]:
     return out
 
 
+def _calibration(cal) -> str:
+    """Diagnose's reference calibration, as report.json's meta records it: median change per channel."""
+    if not cal or not cal.get("applied"):
+        return "not applied"
+    return "median change " + " / ".join(f"{c} {100 * e['median']:+.1f} %" for c, e in cal["effect"].items() if e)
+
+
 def markdown(results: dict, a) -> str:
     L = ["# Real measured BRDFs and anisotropic Mitsuba materials on the twin: what the thesis's model gets "
          "wrong, and what diagnose names (issues 7 and 14)", "",
          "Command of this report (resumable; the defaults are scale 0.25 and rotations 0,90 for every material):", "",
          f"    nice -n 10 python -m validation.diagnose.rgl_study --work WORK --scale {a.scale:g} "
          f"--rotations {a.rotations} --aniso-rotations {a.aniso_rotations} --leds {a.leds} --fit-rows {a.fit_rows}",
-         "        [--camera CAMERA.json --lamps LAMPS.json]      # optional: reuse calibrations of this rig and scale", "",
-         f"Report written at commit {describe(code_version())}. The study is resumable: stages found in WORK are "
+         "        [--camera CAMERA.json --lamps LAMPS.json]      # optional: reuse calibrations of this rig and scale",
+         "        [--keep-diagnose]      # reuse diagnose reports made with other core/diagnose sources", "",
+         f"Report written at commit {describe(code_version())}; core/diagnose sources sha256 "
+         f"{diagnose_code()[:12]}. The study is resumable: stages found in WORK are "
          "reused, so they may have run at other commits; each stage run records its commit in "
-         "WORK/provenance.json, listed per material below.", "",
+         "WORK/provenance.json, listed per material below. A diagnose report made with other core/diagnose "
+         "sources than the current ones is made again unless --keep-diagnose is given; the sources' sha256 each "
+         "report was made with is listed per material (commits do not show uncommitted changes).", "",
          f"Materials: the RGL measurements of ../shared/data/rgl (Dupuy & Jakob, \"An Adaptive Parameterization "
          f"for Efficient Material Acquisition and Rendering\", ACM TOG 37(6), SIGGRAPH Asia 2018), rendered by "
          f"Mitsuba's `measured` plugin, and two anisotropic stock Mitsuba BSDFs ({', '.join(MITSUBA)}; "
          f"scenes/materials, truth: the BSDF itself through `glossrig.twin.mitsuba_material`). Captures: scale {a.scale}, LEDs `{a.leds}`, rotations {a.rotations} (anisotropic Mitsuba materials: {a.aniso_rotations}), "
          f"one repeat, thesis LED fluctuations and sensor noise; diffuse reference: the real white paper "
          f"(`measured:paper_white_rgb.bsdf`), extraction with the thesis normalisation (Lambertian, albedo "
-         f"{ALBEDO}); `glossrig fit` (luminance) and `glossrig diagnose --reference-brdf`. Ground truth: the "
+         f"{ALBEDO}); `glossrig fit` (luminance) and `glossrig diagnose --reference-brdf` (which renormalises the data "
+         f"with the paper's BRDF as a calibration step before it tests any cause). Ground truth: the "
          f"measured BRDF itself (`glossrig.twin.measured_brdf`, the plugin the twin renders with), in luminance.", "",
          "Errors are |f_model / f_true - 1| (median over samples with f_true > "
          f"{FLOOR} 1/sr; 'lobe' = theta_h < 10 deg) at the rig's own sample angles (all extracted samples) and "
@@ -519,10 +601,12 @@ def markdown(results: dict, a) -> str:
         L += [f"The reference paper's directional albedo (luminance) is {pa['0']:.3f} at normal viewing and "
               f"{pa['45']:.3f} at 45 deg (the thesis assumes 0.8 everywhere).", ""]
     L += ["## The named causes", "",
-          "* **(a) Lambertian 0.8 reference** (thesis eq. 4.78). Paper is not Lambertian and its albedo is not "
-          "0.8: the thesis's value is (0.8/pi) f / f_ref. Extension: renormalise every sample with the paper's "
-          "own measured BRDF at that sample's angles, f = f_meas f_ref pi / 0.8 per channel "
-          "(`glossrig.core.diagnose.material_models.renormalise`; parameter-free when f_ref is known).",
+          "* **(a) Lambertian 0.8 reference** (thesis eq. 4.78): a data error, corrected by calibration. Paper is "
+          "not Lambertian and its albedo is not 0.8: the thesis's value is (0.8/pi) f / f_ref. Correction: "
+          "renormalise every sample with the paper's own measured BRDF at that sample's angles, "
+          "f = f_meas f_ref pi / 0.8 per channel (`glossrig.core.diagnose.data.renormalise_table`, which "
+          "`glossrig diagnose --reference-brdf` applies before it tests any cause; parameter-free when f_ref is "
+          "known). The tables below keep it as a finding about the data; it is not a verdict.",
           "* **(b) Ward lobe shape** (eq. 4.79). A Gaussian in tan(theta_h) with a 1/sqrt(cos cos) factor. "
           "Extension: the anisotropic GGX / Trowbridge-Reitz lobe D G2 / (4 cos_i cos_o) with height-correlated "
           "Smith masking (Walter et al. 2007; Heitz 2014), anisotropy axes turned as in eq. 4.80; same five "
@@ -556,7 +640,10 @@ def markdown(results: dict, a) -> str:
             continue
         L += ["", f"## {m}", ""]
         stages = ("capture", "extract", "fit", "diagnose", "analysis")
-        L += ["Code: " + ", ".join(f"{st} at {describe(prov.get(f'{m}/{st}'))}" for st in stages) + ".", ""]
+        stamp = Path(a.work) / f"{m}.diagnose.code"
+        L += ["Code: " + ", ".join(f"{st} at {describe(prov.get(f'{m}/{st}'))}" for st in stages)
+              + (f" (diagnose with core/diagnose sources sha256 {stamp.read_text()[:12]})" if stamp.exists() else "")
+              + ".", ""]
         if "failed" in r:
             L += [f"Not measured: {r['failed']}.", ""]
             continue
@@ -591,9 +678,10 @@ def markdown(results: dict, a) -> str:
                                               "the profile is not flat."), ""]
         if r.get("diagnose"):
             d = r["diagnose"]
-            rows = [c for c in d["causes"] if c["name"] in ("ggx_lobe", "reference_brdf", "fresnel")]
-            L += [f"**glossrig diagnose** verdict: `{d['verdict']}` (base held-out error {d['base_error']:.4g}). "
-                  "Material and reference causes: " + "; ".join(
+            rows = [c for c in d["causes"] if c["name"] in EXTENSIONS]
+            L += [f"**glossrig diagnose** verdict: `{d['verdict']}` (base held-out error {d['base_error']:.4g}; "
+                  f"reference calibration: {_calibration(d.get('reference_calibration'))}). "
+                  "Material causes: " + "; ".join(
                       f"{c['name']} gain {100 * c['gain']:+.1f} % (significant {c['significant']}"
                       f"{'' if c.get('identifiable', True) else ', unidentifiable'})" for c in rows) + ".", ""]
         L += [f"![{m}](rgl_study/{m}.png)", ""]
@@ -611,13 +699,20 @@ def main(argv=None):
     ap.add_argument("--leds", default="middle", help="LEDs of every capture (a row name or ids)")
     ap.add_argument("--materials", default=",".join(MATERIALS))
     ap.add_argument("--no-diagnose", dest="diagnose", action="store_false")
+    ap.add_argument("--keep-diagnose", action="store_true",
+                    help="reuse every diagnose report found in WORK (default: a report made with other "
+                         "core/diagnose sources than the current ones is made again)")
+    ap.add_argument("--jobs", type=int, default=1, help="diagnoses run at a time (each its own process)")
     ap.add_argument("--captures-only", action="store_true")
+    ap.add_argument("--report-only", action="store_true",
+                    help="write the report from what WORK holds: no capture, extraction, fit, diagnosis or analysis "
+                         "is run (a material not analysed at this ANALYSIS_VERSION is listed as such)")
     ap.add_argument("--fit-rows", type=int, default=40_000, help="rows (random) the lobe fits use")
     ap.add_argument("--report", default=str(ROOT / "validation/diagnose/rgl_study.md"))
     a = ap.parse_args(argv)
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
-    runs = captures(work, a)
+    runs = found(work, a) if a.report_only else captures(work, a)
     if a.captures_only:
         return
     results = {}
@@ -626,7 +721,11 @@ def main(argv=None):
         if "failed" in r:
             results[m] = {"material": m, "failed": r["failed"]}
             continue
-        if not f.exists():
+        current = f.exists() and json.loads(f.read_text()).get("version") == ANALYSIS_VERSION
+        if a.report_only and not current:
+            results[m] = {"material": m, "failed": "not analysed yet (run the command without --report-only)"}
+            continue
+        if not current:
             f.write_text(json.dumps(analyse(m, r, work, a), indent=1))
             record(work / "provenance.json", f"{m}/analysis")
         results[m] = json.loads(f.read_text())
