@@ -57,17 +57,15 @@ def rewrite_capture(src, dst, effect: str, value: float) -> Path:
         elif effect == "shutter_error":
             x = dn - black
             dn = np.where(dn >= fr.white, dn, black + x * (im.exposure_s + value) / im.exposure_s)
-        elif effect == "channel_response":
-            x = dn - black
-            red = fr.channel_index() == 0
-            dn = np.where((dn >= fr.white) | ~red, dn,
-                          black + x * (1.0 - value * np.maximum(x, 0) / (fr.white - black)))
         else:
-            # the signal above black, read noise included: compressing max(x, 0) instead would
-            # move every dark pixel's negative noise to 0, a +1.1 DN offset (measured) that then
-            # reads as a black level offset
+            # sensor_nonlinearity on every pixel, channel_response on the red ones. The signal above
+            # black, read noise included: compressing max(x, 0) instead would move every dark pixel's
+            # negative noise to 0, a +1.1 DN offset (measured) that then reads as a black level offset
             x = dn - black
-            dn = np.where(dn >= fr.white, dn, black + x * (1.0 - value * np.maximum(x, 0) / (fr.white - black)))
+            keep = dn >= fr.white
+            if effect == "channel_response":
+                keep = keep | (fr.channel_index() != 0)
+            dn = np.where(keep, dn, black + x * (1.0 - value * np.maximum(x, 0) / (fr.white - black)))
         mosaic = np.clip(np.round(dn), 0, fr.white).astype(np.uint16)
         cfa = "".join(CFA_NAMES[int(c)] for c in np.asarray(fr.cfa).ravel())
         im.sha256 = write_dng(p, mosaic, cfa=cfa, black_level=tuple(int(b) for b in np.asarray(fr.black).ravel()),

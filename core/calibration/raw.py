@@ -364,10 +364,11 @@ def read_raw(path: str | Path, crop: tuple[int, int, int, int] | None = None, *,
     and none given, is an error: HDR merging (thesis 4.3.3) needs it.
 
     ``sha256``: the checksum the capture manifest recorded for this file. The
-    file is then hashed and decoded from the same bytes, read once (mapped into
-    memory, :func:`_mapped`), so a file changed since capture (a flipped byte
-    decodes silently into wrong pixel values) stops here instead of reaching the
-    results. :meth:`glossrig.core.capture.Manifest.read_raw` passes it for every
+    file is then hashed and decoded from one read-only mapping of it (:func:`_mapped`),
+    so a file changed since capture (a flipped byte decodes silently into wrong pixel
+    values) stops here instead of reaching the results. (A file rewritten in place by
+    another program between the hash and the decode is not excluded by a mapping as it
+    would be by a private copy; the capture tools replace files atomically.) :meth:`glossrig.core.capture.Manifest.read_raw` passes it for every
     capture image.
 
     The mosaic is in sensor orientation: the file's orientation flag is not
@@ -419,9 +420,10 @@ def read_raw(path: str | Path, crop: tuple[int, int, int, int] | None = None, *,
 def _mapped(path: Path):
     """The file's contents, mapped read-only (closed on exit), with the kernel asked to read
     all of it ahead: hashing, parsing and cropping then read the file's pages once, in
-    place, with neither a 48 MB copy per full-resolution file nor the page faults of a
-    fresh buffer (measured: 42 against 71 ms of CPU per file for checksum, tags and crop;
-    issue 19). Where the file cannot be mapped, its bytes."""
+    place, without a 48 MB copy per full-resolution plainly stored DNG nor the page faults of
+    a fresh buffer (measured: 42 against 71 ms of CPU per file for checksum, tags and crop;
+    issue 19; compressed raws decoded by LibRaw are still copied into its buffer). Where the
+    file cannot be mapped, its bytes."""
     try:
         with open(path, "rb") as f:
             data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)

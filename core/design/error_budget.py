@@ -208,24 +208,18 @@ def _ratio(f: np.ndarray, sigma_f: np.ndarray, sigma_ref: np.ndarray, reference_
         return f * np.hypot(sigma_f / f, sigma_ref / reference_f)
 
 
-def _sensor_only(nm):
-    """The noise model without its per-pixel LED term: what ``glossrig extract`` writes as a
-    row's variance (the HDR merge's sensor noise) and so what the fit weights by."""
-    return replace(nm, led_rel=0.0) if isinstance(nm, fi.HdrNoise) else nm
-
-
 def _sigmas(nm, f, cos_in, dist_mm) -> tuple[np.ndarray, np.ndarray]:
-    """``(nm.sigma(f, ..), _sensor_only(nm).sigma(f, ..))`` with the HDR merge of
-    :class:`~glossrig.core.design.fisher.HdrNoise` evaluated once (its sensor part is the same in
-    both; the LED term is added as :meth:`~glossrig.core.design.fisher.HdrNoise.relative` adds
-    it, so the figures are those of the two calls, bit for bit)."""
+    """The noise model's standard deviation of ``f`` and the one without its per-pixel LED term
+    (what the fit weights by), the HDR merge evaluated once
+    (:meth:`~glossrig.core.design.fisher.HdrNoise.relative_with_sensor_only`); a noise model
+    without an LED term gives its one figure twice."""
     f = np.asarray(f, float)
     with np.errstate(divide="ignore", invalid="ignore"):     # as ratio_sigma evaluates them
         if not isinstance(nm, fi.HdrNoise):
             s = nm.sigma(f, cos_in, dist_mm)
             return s, s
-        shot = nm.sensor_relative(nm.electron_rate(f, cos_in, dist_mm))
-        return np.sqrt(shot ** 2 + nm.led_rel ** 2) * f, np.sqrt(shot ** 2) * f
+        r, r0 = nm.relative_with_sensor_only(f, cos_in, dist_mm)
+        return r * f, r0 * f
 
 
 def design_budget(rig, materials, **kw) -> dict[str, dict]:

@@ -140,8 +140,14 @@ class HdrNoise:
 
     def relative(self, f, cos_in, dist_mm) -> np.ndarray:
         """Relative standard deviation of the HDR BRDF estimate (inf when no exposure is usable)."""
+        return self.relative_with_sensor_only(f, cos_in, dist_mm)[0]
+
+    def relative_with_sensor_only(self, f, cos_in, dist_mm) -> tuple[np.ndarray, np.ndarray]:
+        """(:meth:`relative`, the same without the per-pixel LED term) from one evaluation of the
+        HDR merge: the second is what ``glossrig extract`` writes as a row's variance (the merge's
+        sensor noise), and so what a fit weights by."""
         shot = self.sensor_relative(self.electron_rate(f, cos_in, dist_mm))
-        return np.sqrt(shot ** 2 + self.led_rel ** 2)
+        return np.sqrt(shot ** 2 + self.led_rel ** 2), np.sqrt(shot ** 2)
 
     def sigma(self, f, cos_in, dist_mm) -> np.ndarray:
         return self.relative(f, cos_in, dist_mm) * np.asarray(f, float)
