@@ -130,8 +130,10 @@ def setup(work: Path, a, material: str) -> tuple[Path, Path]:
 
         simulate(null, material, 999 - m)
         d = load_brdf(null, a.reference, load_camera(a.camera), load_lamps(a.lamps))
-        w = fit_samples(d.table, channels=["luminance"], footprint=False, budget=False).fits["luminance"].params
-        fit.write_text(json.dumps({"luminance": w.as_dict(), "source": str(null)}))
+        from glossrig.core.fitting.export import write_fit_json
+
+        mf = fit_samples(d.table, channels=["luminance"], footprint=False, budget=False)
+        write_fit_json(mf, fit, provenance={"source": str(null)})
     return null, fit
 
 
