@@ -152,22 +152,4 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
         f"{sum(e['significant'] for e in open_world)} carry structure no cause explains")
     rep = write_report(out, causes, base, structure, meta, plots=plots, unexplained=open_world,
                        calibration=m.calibration)
-    if cal is not None:
-        note_reference_calibration(Path(out) / "report.md", cal)
     return rep
-
-
-def note_reference_calibration(md: Path, cal: dict) -> None:
-    """Say in report.md that the data was calibrated with the reference's own BRDF (issue 14,
-    item 4): a paragraph after the material line (report.py writes the rest of the report)."""
-    from glossrig.core.atomic import atomic_write_text
-
-    eff = "; ".join(f"{c} {e['median']:+.2%} (5-95 %: {e['p5']:+.2%} .. {e['p95']:+.2%})"
-                    for c, e in cal["effect"].items() if e)
-    para = [f"Reference calibration (applied, not a verdict): every sample renormalised with the reference's own "
-            f"BRDF (`{cal.get('source')}`), {cal['formula']}, albedo {cal['albedo']:g}. Median relative change "
-            f"of the data per channel: {eff}. {cal['fit'].capitalize()}; every cause below is tested on the "
-            "renormalised data."]
-    lines = md.read_text().splitlines()
-    at = next((i + 1 for i, x in enumerate(lines) if x.startswith("Material (")), 1)
-    atomic_write_text(md, "\n".join(lines[:at] + [""] + para + lines[at:]).rstrip("\n") + "\n")

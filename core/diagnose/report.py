@@ -11,6 +11,8 @@ from glossrig.core.diagnose.catalogue import THRESHOLDS, CauseResult
 
 #: spaces where a cause acts on the raw frames themselves, looked at first
 SENSOR_SPACES = ("frames", "pixels")
+
+
 def ranking(causes: list[CauseResult]) -> list[CauseResult]:
     """The eligible causes in the order the verdict reads them: sensor-level causes first, each
     group by held-out gain (:func:`verdict` names the first; a capture hiding two effects should
@@ -122,6 +124,19 @@ def _pct(x) -> str:
     return "-" if x is None or not np.isfinite(x) else f"{x:.2%}"
 
 
+def _reference_calibration_lines(cal: dict | None) -> list[str]:
+    """report.md's paragraph on the reference calibration (issue 14, item 4; ``meta.reference_calibration``
+    of :func:`glossrig.core.diagnose.diagnose`), none when it was not applied."""
+    if not cal or not cal.get("applied"):
+        return []
+    eff = "; ".join(f"{c} {e['median']:+.2%} (5-95 %: {e['p5']:+.2%} .. {e['p95']:+.2%})"
+                    for c, e in cal["effect"].items() if e)
+    return [f"Reference calibration (applied, not a verdict): every sample renormalised with the reference's own "
+            f"BRDF (`{cal.get('source')}`), {cal['formula']}, albedo {cal['albedo']:g}. Median relative change "
+            f"of the data per channel: {eff}. {cal['fit'].capitalize()}; every cause below is tested on the "
+            "renormalised data.", ""]
+
+
 def _num(x):
     if isinstance(x, dict):
         return {k: _num(v) for k, v in x.items()}
@@ -170,6 +185,7 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
     files = _plots(out, structure, causes) if plots else []
     L = ["# glossrig diagnose report", "", f"Sample: `{meta.get('sample')}`  ", f"Reference: `{meta.get('reference')}`  ",
          f"Material (Ward fit, luminance): {meta.get('material')}", "",
+         *_reference_calibration_lines(meta.get("reference_calibration")),
          f"## Verdict: **{v}**", ""]
     if v == "none":
         L.append("No cause lowers the held-out error by more than the stated threshold in every fold: "
