@@ -180,7 +180,7 @@ def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
 def led_sequence(man: Manifest, rotation: float, led: int) -> list:
     """The manifest entries of one LED's sequence images at one rotation (every repeat and
     exposure, in manifest order)."""
-    return [im for im in man.select("sequence", rotation=rotation) if im.leds == [led]]
+    return man.select("sequence", rotation=rotation, leds=[led])
 
 
 def block_values(rate: np.ndarray, var: np.ndarray, cfa, block_index) -> tuple[np.ndarray, np.ndarray]:
