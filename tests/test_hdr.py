@@ -78,10 +78,80 @@ def test_combine_repeats_is_the_mean_and_flags_any_saturated_repeat():
     assert clipped[0, 0].tolist() == [False, True]
 
 
+def _repeats(m: int, seed: int, shape=(2, 23, 31)) -> np.ndarray:
+    """m float32 repeats spanning 30 decades, a quarter of the pixels at or above 1 in some
+    repeats, a few exactly 1.0 (linearize's saturated value). For m = 8 and 16, pixel
+    (1, 0, 0) is 0.5, 2^-25, then 2^-54 in every later repeat: added in repeat order each
+    2^-54 is half a float64 ulp of 0.5 + 2^-25 and rounds away (to even), so the sum stays
+    0.5 + 2^-25 and the mean (0.5 + 2^-25) / m is a float32 tie that rounds to 0.5 / m;
+    the exact sum, or numpy's pairwise order (blocks of 8 partial sums), keeps the 2^-54s
+    and rounds up one float32 ulp."""
+    rng = np.random.default_rng(seed)
+    a = (10.0 ** rng.uniform(-30, 0, (m, *shape))).astype(np.float32)
+    a[rng.random(a.shape) < 0.25 / m] = np.float32(1.0)
+    a[:, 0, :2, :2] = np.float32(1.5)                        # saturated in every repeat
+    if m in (8, 16):
+        a[:, 1, 0, 0] = [0.5, 2.0 ** -25] + [2.0 ** -54] * (m - 2)
+    return a
+
+
+@pytest.mark.parametrize("m", [1, 2, 3, 8, 9, 16])
+def test_combine_repeats_equals_numpys_mean_of_the_stack_bit_for_bit(m):
+    """Eq. 4.31 taken one repeat at a time (issue 19) gives the plain numpy mean of the stacked
+    repeats (float64 over axis 0 of the C-ordered stack, rounded to float32) exactly, and its
+    saturation mask, whether the repeats come as an (m, n, H, W) array, a list or a generator.
+    For m = 8, 16 one pixel tells the orders of addition apart (see _repeats): another order,
+    or the exactly rounded mean, would fail this test."""
+    a = _repeats(m, seed=m)
+    ref = a.mean(axis=0, dtype=np.float64).astype(np.float32)
+    for sat_level in (1.0, 0.5):
+        ref_clip = (a >= sat_level).any(axis=0)
+        for linear in (a, list(a), (np.array(r) for r in a)):
+            mean, clipped = combine_repeats(linear, saturation=sat_level)
+            assert mean.dtype == np.float32 and clipped.dtype == bool and mean.shape == a.shape[1:]
+            np.testing.assert_array_equal(mean, ref)
+            np.testing.assert_array_equal(clipped, ref_clip)
+        assert clipped[0, :2, :2].all() and 0 < clipped.sum() < clipped.size
+    if m in (8, 16):
+        import math
+        assert mean[1, 0, 0] == np.float32(0.5 / m)
+        exact = np.float32(math.fsum(a[:, 1, 0, 0].astype(np.float64).tolist()) / m)
+        assert exact == np.nextafter(np.float32(0.5 / m), np.float32(1))
+
+
+def test_combine_repeats_holds_one_repeat_at_a_time():
+    """A generator's repeats are dropped once added: when the generator makes repeat k, no
+    earlier repeat is still referenced (weak references to them are dead), so the memory is
+    one repeat and the accumulators, never the stack (issue 19: full-resolution extraction)."""
+    import weakref
+
+    a = _repeats(6, seed=1)
+    made: list[weakref.ref] = []
+    alive_at_make: list[int] = []
+
+    def lazily():
+        for r in a:
+            alive_at_make.append(sum(w() is not None for w in made))
+            x = np.array(r)            # a fresh array, like a repeat linearised on demand
+            made.append(weakref.ref(x))
+            yield x
+            del x
+
+    mean, clipped = combine_repeats(lazily())
+    assert alive_at_make == [0] * 6 and len(made) == 6
+    np.testing.assert_array_equal(mean, a.mean(axis=0, dtype=np.float64).astype(np.float32))
+    np.testing.assert_array_equal(clipped, (a >= 1.0).any(axis=0))
+
+
 @pytest.mark.parametrize("bad, match", [
     (np.zeros((2, 3, 4), np.float32), "repeats, exposures, H, W"),
+    (np.zeros((0, 2, 3, 4), np.float32), "empty input"),
     (np.zeros((1, 2, 3, 4), np.uint16), "linearize"),
     (np.full((1, 2, 3, 4), np.nan, np.float32), "NaN"),
+    ([np.zeros((2, 3, 4), np.float32), np.zeros((2, 3, 5), np.float32)], r"repeat 1 has shape \(2, 3, 5\)"),
+    ([np.zeros((3, 4), np.float32)], "exposures, H, W"),
+    ([np.zeros((2, 3, 4), np.float32), np.full((2, 3, 4), np.inf, np.float32)], r"repeat 1\) holds NaN"),
+    ((r for r in ()), "no repeats"),
 ])
 def test_combine_repeats_rejects_bad_input(bad, match):
     with pytest.raises(InputError, match=match):

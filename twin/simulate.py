@@ -75,6 +75,34 @@ RIG_COPY = "rig.toml"
 OPTIONS_KEY = "simulate"
 
 
+def plan_sha256(options: dict) -> str:
+    """The sha256 of a simulated capture's plan (the manifest's ``plan.sha256``): the plan's
+    text is the sorted JSON of the options that determine the images (``OPTIONS_KEY``)."""
+    return hashlib.sha256(json.dumps(options, sort_keys=True).encode()).hexdigest()
+
+
+def twin_effects(effects_text: str | None, ideal: bool = False) -> dict:
+    """The non-idealities a capture is simulated with: the rig's own LED fluctuations
+    (unless ``ideal``) updated by ``--effects`` (``name=value,...``)."""
+    effects = {} if ideal else dict(THESIS_FLUCTUATIONS)
+    effects.update(parse_effects(effects_text))
+    return effects
+
+
+def sample_options(rig, material_spec: str, leds_spec, rotations, repeats: int, scale: float, seed: int,
+                   effects: dict, spp: int) -> dict:
+    """The options that determine a sample capture's images, as its manifest records them
+    (``OPTIONS_KEY``): a resume, or an extension by LEDs, must give the same."""
+    led_ids = rig.select_leds(leds_spec)
+    rotations = [float(r) for r in rotations]
+    if len(set(rotations)) != len(rotations):
+        raise InputError(f"--rotations lists an angle twice: {rotations}")
+    check_rotation_tags(rotations)
+    return {"target": "sample", "rig_name": rig.name, "material": material_spec, "leds": list(led_ids),
+            "rotations": rotations, "repeats": int(repeats), "scale": float(scale), "seed": int(seed),
+            "effects": dict(sorted(effects.items())), "spp": int(spp)}
+
+
 def _check_resume(out: Path, options: dict) -> bool:
     """With ``--resume``: whether there is a capture to continue in ``out`` (False: start
     afresh in an empty or missing folder). Refuses a folder that holds no capture, a
@@ -124,8 +152,7 @@ def simulate(rig_path, material_spec: str, leds_spec, rotations, repeats: int, s
         raise InputError(f"--scale must lie in [0.01, 1], got {scale}")
     if int(seed) < 0:
         raise InputError(f"--seed must be >= 0, got {seed}")
-    effects = {} if ideal else dict(THESIS_FLUCTUATIONS)
-    effects.update(parse_effects(effects_text))
+    effects = twin_effects(effects_text, ideal)
     out = Path(out)
     if target == "checkerboard":
         if views < 1:
@@ -138,14 +165,8 @@ def simulate(rig_path, material_spec: str, leds_spec, rotations, repeats: int, s
                                      options=options, resume=resuming)
     if target != "sample":
         raise InputError(f"--target must be sample or checkerboard, got {target!r}")
-    led_ids = rig.select_leds(leds_spec)
-    rotations = [float(r) for r in rotations]
-    if len(set(rotations)) != len(rotations):
-        raise InputError(f"--rotations lists an angle twice: {rotations}")
-    check_rotation_tags(rotations)
-    options = {"target": target, "rig_name": rig.name, "material": material_spec, "leds": list(led_ids),
-               "rotations": rotations, "repeats": int(repeats), "scale": float(scale), "seed": int(seed),
-               "effects": dict(sorted(effects.items())), "spp": int(spp)}
+    options = sample_options(rig, material_spec, leds_spec, rotations, repeats, scale, seed, effects, spp)
+    led_ids, rotations = options["leds"], options["rotations"]
     resuming = _check_resume(out, options) if resume else False
     prepare_out(out, resume=resume)
 
@@ -155,10 +176,9 @@ def simulate(rig_path, material_spec: str, leds_spec, rotations, repeats: int, s
 
     from .virtual_rig import SHOT_OVERHEAD_S, VirtualRig
 
-    text = json.dumps(options, sort_keys=True).encode()
     cal = (rig.calibration_time_s, rig.calibration_iso, rig.calibration_aperture)
     plan = CapturePlan(
-        path="glossrig simulate", text_sha256=hashlib.sha256(text).hexdigest(), rig=rig,
+        path="glossrig simulate", text_sha256=plan_sha256(options), rig=rig,
         rig_path=Path(rig.path).resolve(), sample=material.label, rotations=tuple(rotations), leds=tuple(led_ids),
         repeats=int(repeats), exposures_s=tuple(rig.exposure_times_s), iso=rig.sequence_iso,
         aperture=rig.sequence_aperture, calibration=True, calibration_exposure_s=cal[0], calibration_iso=cal[1],

@@ -22,8 +22,6 @@ Every helper passes ``stdout``/``stderr``/``echo``/``cwd`` on to :func:`glossrig
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import shlex
 import shutil
 import subprocess
@@ -123,7 +121,7 @@ def simulate(out: Path, *args, rig: Path = RIG, extra=(), mode: str = "reuse", *
     return out
 
 
-def extend_leds(out: Path, leds: list[int]) -> bool:
+def extend_leds(out: Path, leds: list[int], *, options: dict | None = None) -> bool:
     """Turn the twin capture in OUT, made by ``glossrig simulate`` with LEDs that are the
     first ones of LEDS and otherwise the same options, into an unfinished capture of all
     of LEDS that ``glossrig simulate --resume`` completes: the images already made are
@@ -135,11 +133,17 @@ def extend_leds(out: Path, leds: list[int]) -> bool:
     the image is (``glossrig.twin.sensor.image_rng``), at its time on the plan's
     schedule, and the plan takes the calibration image and then the LEDs in their given
     order (``CapturePlan.shots``), so the first LEDs' images stand at the same times in
-    both plans. The manifest gets the options and plan record (sha256 of the options,
-    LED list, number of planned images) the longer simulation writes; its recorded
-    images are checked against their sha256 by the resume. LEDs that do not begin with
-    the capture's own (another order, fewer LEDs) cannot be made so: InputError."""
-    from glossrig.twin.simulate import OPTIONS_KEY
+    both plans. The manifest gets the options and plan record (its sha256,
+    ``glossrig.twin.simulate.plan_sha256``; LED list; number of planned images) the longer
+    simulation writes; its recorded images are checked against their sha256 by the resume.
+
+    ``options``: the simulate options of the command that is to complete the capture
+    (``glossrig.twin.simulate.sample_options``, :func:`simulate_options`); they must be the
+    capture's with LEDS as its LEDs, or the resume would refuse them. Everything is checked
+    before the manifest is written (atomically, last): a refused call (InputError: other
+    options; LEDs that do not begin with the capture's own, in another order or fewer; a
+    plan this cannot extend) leaves the capture as it was."""
+    from glossrig.twin.simulate import OPTIONS_KEY, plan_sha256
 
     out = Path(out)
     if not (out / "capture.json").is_file():
@@ -151,6 +155,13 @@ def extend_leds(out: Path, leds: list[int]) -> bool:
         return False
     old = [int(x) for x in opts["leds"]]
     leds = [int(x) for x in leds]
+    new = {**opts, "leds": leds}
+    if options is not None:
+        diff = [k for k in sorted(set(new) | set(options)) if new.get(k) != options.get(k)]
+        if diff:
+            what = "; ".join(f"{k}: extended capture {new.get(k)!r}, command {options.get(k)!r}" for k in diff)
+            raise InputError(f"cannot extend the capture to LEDs {leds}: the simulate command that would complete "
+                             f"it has other options ({what}); nothing was changed", path=where)
     if leds == old:
         return False
     if leds[:len(old)] != old:
@@ -158,17 +169,12 @@ def extend_leds(out: Path, leds: list[int]) -> bool:
                          "ones of the new list, in the same order (their images' times on the schedule)", path=where)
     if plan.get("led_exposures_s") or plan.get("checkerboard_views"):
         raise InputError("cannot extend a capture with per-LED exposures or checkerboard views", path=where)
-
-    def digest(o: dict) -> str:        # twin.simulate: the plan's text is the options' sorted JSON
-        return hashlib.sha256(json.dumps(o, sort_keys=True).encode()).hexdigest()
-
-    if digest(opts) != plan.get("sha256"):
+    if plan_sha256(opts) != plan.get("sha256"):
         raise InputError("the manifest's plan sha256 is not that of its simulate options (made by another version "
                          "of glossrig simulate?); simulate the capture anew", path=where)
-    new = {**opts, "leds": leds}
     per_led = len(plan["exposures_s"]) * int(plan["repeats"]) * len(plan["rotations"])
     m.meta[OPTIONS_KEY] = new
-    m.meta["plan"] = {**plan, "sha256": digest(new), "leds": leds,
+    m.meta["plan"] = {**plan, "sha256": plan_sha256(new), "leds": leds,
                       "planned_images": int(plan["planned_images"]) + per_led * (len(leds) - len(old))}
     m.meta.pop("finished", None)
     m.complete = False
@@ -176,19 +182,48 @@ def extend_leds(out: Path, leds: list[int]) -> bool:
     return True
 
 
+def simulate_options(*args, rig: Path = RIG, extra=()) -> dict:
+    """The options ``glossrig simulate --rig RIG ARGS EXTRA`` of a sample capture records in
+    its manifest (``glossrig.twin.simulate.sample_options``), its command line read by the
+    verb's own parser; a bad argument is an InputError."""
+    import argparse
+
+    from glossrig.cli.verbs.simulate import add_arguments
+    from glossrig.core.rig import load_rig
+    from glossrig.twin.simulate import sample_options, twin_effects
+
+    class Parser(argparse.ArgumentParser):
+        def error(self, message):
+            raise InputError(f"glossrig simulate {' '.join(argv)}: {message}")
+
+    argv = [str(a) for a in ("--rig", rig, *args, "--out", "-", *extra)]
+    p = Parser(prog="glossrig simulate")
+    add_arguments(p)
+    a = p.parse_args(argv)
+    if a.target != "sample":
+        raise InputError(f"glossrig simulate {' '.join(argv)}: not a sample capture")
+    try:
+        rotations = [float(x) for x in a.rotations.split(",") if x.strip()]
+    except ValueError:
+        raise InputError(f"--rotations: expected comma-separated degrees, got {a.rotations!r}") from None
+    return sample_options(load_rig(a.rig), a.material, a.leds, rotations, a.repeats, a.scale, a.seed,
+                          twin_effects(a.effects, a.ideal), a.spp)
+
+
 def capture(out: Path, material: str, scale: float, seed: int, rotations: str = "0", repeats: int = 1, *,
             leds: str = "middle", extra=(), rig: Path = RIG, mode: str = "reuse", **run) -> Path:
     """A capture of MATERIAL: :func:`simulate` with ``--material --leds --rotations
     --repeats --scale --seed``. ``mode`` as :func:`simulate`'s, or ``extend``: a capture
-    in OUT of the first of LEDS (all other options equal) is extended to LEDS
-    (:func:`extend_leds`) and completed; otherwise as ``resume``."""
+    in OUT of the first of LEDS (all other options equal: checked, with the LEDs, before
+    anything is changed) is extended to LEDS (:func:`extend_leds`) and completed;
+    otherwise as ``resume``."""
+    args = ("--material", material, "--leds", leds, f"--rotations={rotations}", "--repeats", repeats,
+            "--scale", scale, "--seed", seed)
     if mode == "extend":
-        from glossrig.core.rig import load_rig
-
-        extend_leds(Path(out), load_rig(rig).select_leds(leds))
+        options = simulate_options(*args, rig=rig, extra=extra)
+        extend_leds(Path(out), options["leds"], options=options)
         mode = "resume"
-    return simulate(out, "--material", material, "--leds", leds, f"--rotations={rotations}", "--repeats", repeats,
-                    "--scale", scale, "--seed", seed, rig=rig, extra=extra, mode=mode, **run)
+    return simulate(out, *args, rig=rig, extra=extra, mode=mode, **run)
 
 
 def checkerboard(out: Path, views: int, scale: float, seed: int, *, rig: Path = RIG, **run) -> Path:

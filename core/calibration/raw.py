@@ -39,6 +39,7 @@ import tifffile
 
 from glossrig.core.calibration.demosaic import CHANNELS, cfa_array, cfa_string, channel_index, demosaic, demosaic_thesis
 from glossrig.core.errors import InputError
+from glossrig.core.radiometry.hdr import combine_repeats
 
 __all__ = ["RawFrame", "ExifInfo", "read_raw", "read_exif", "linearize", "linearize_mosaic", "linearize_mean", "even_crop",
            "demosaic", "demosaic_thesis", "channel_index", "cfa_array", "cfa_string"]
@@ -539,10 +540,10 @@ def linearize_mean(mosaics, black, white: float) -> tuple[np.ndarray, np.ndarray
     frame is above 1e-3 relative wherever the HDR step uses it (> 0.002 of the range,
     about 20 electrons at ISO 320): the error budget is 1e-4 of the noise. A value at
     or above the white level gives exactly 1.0 as in :func:`linearize_mosaic`. Other
-    inputs (float mosaics, fractional levels) take that separate route, exactly, one
-    repeat at a time (a float64 running sum in repeat order, as the mean over the stacked
-    repeats sums them). One pass over m uint16 frames instead of m float32 frames and
-    their float64 mean: no (m, H, W) array is made on either route.
+    inputs (float mosaics, fractional levels) take that separate route itself:
+    :func:`~glossrig.core.radiometry.hdr.combine_repeats` fed the linearised repeats by a
+    generator, one repeat at a time. One pass over m uint16 frames instead of m float32
+    frames and their float64 mean: no (m, H, W) array is made on either route.
     """
     mos = [np.asarray(x) for x in mosaics]
     if not mos:
@@ -557,8 +558,9 @@ def linearize_mean(mosaics, black, white: float) -> tuple[np.ndarray, np.ndarray
     m = len(mos)
     exact = (all(x.dtype in (np.uint8, np.uint16) for x in mos) and np.all(b == np.round(b)) and wl.is_integer()
              and 0 <= float(b.min()) and m * wl < 2 ** 24)
-    if not exact:
-        return _linearize_mean_streamed(mos, black, white)
+    if not exact:       # linearised one repeat at a time (a generator): one float32 frame in memory
+        mean, sat = combine_repeats(linearize_mosaic(x, black, white)[None] for x in mos)
+        return mean[0], sat[0]
     bi = b.astype(np.int64)
     uniform = bool(np.all(bi == bi[0, 0]))       # one black level: scalar bounds on the whole mosaic
     total = np.zeros(shape, np.uint32)
@@ -581,22 +583,3 @@ def linearize_mean(mosaics, black, white: float) -> tuple[np.ndarray, np.ndarray
         plane -= np.float32(m * bi[i, j])
         plane /= np.float32(m * (wl - bi[i, j]))
     return out, sat
-
-
-def _linearize_mean_streamed(mos: list[np.ndarray], black, white: float) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`glossrig.core.radiometry.hdr.combine_repeats` of the repeats linearised by
-    :func:`linearize_mosaic` (thesis eq. 4.1-4.2, 4.31), one repeat at a time: a float64 sum
-    in repeat order divided by m and rounded to float32 (the float64 mean over the stacked
-    repeats adds them in the same order, so the values are the same), and where a repeat
-    reached 1.0 (saturated)."""
-    total = np.zeros(mos[0].shape, np.float64)
-    sat = np.zeros(mos[0].shape, bool)
-    for k, x in enumerate(mos):
-        lin = linearize_mosaic(x, black, white)
-        if not np.isfinite(lin).all():
-            raise InputError(f"linear images hold NaN or infinite values (repeat {k}, first at "
-                             f"{tuple(int(i) for i in np.argwhere(~np.isfinite(lin))[0])})")
-        total += lin
-        sat |= lin >= 1.0
-    total /= len(mos)
-    return total.astype(np.float32), sat

@@ -171,27 +171,54 @@ def combine_repeats(linear, *, saturation: float = 1.0) -> tuple[np.ndarray, np.
     """Thesis eq. 4.31: SI^comb_n = (1/m) sum_i SI^lin_{i,n} - the mean of
     the m repeats of every exposure.
 
-    ``linear``: (m, n, H, W) linearised mosaics (repeat, exposure, row,
-    column), values in units of the white-black range. Returns
-    ``(combined, clipped)``: float32 (n, H, W) means, and bool (n, H, W)
-    marking where at least one repeat reached ``saturation`` (1.0 after
+    ``linear``: the m repeats, each (n, H, W) linearised mosaics (exposure, row,
+    column), values in units of the white-black range: an (m, n, H, W) array, or any
+    iterable of (n, H, W) arrays (a generator that linearises each repeat only when it is
+    asked for). Returns ``(combined, clipped)``: float32 (n, H, W) means, and bool
+    (n, H, W) marking where at least one repeat reached ``saturation`` (1.0 after
     :func:`~glossrig.core.calibration.raw.linearize`, which maps every value at or above
     the white level to exactly 1). Addition to the thesis: the thesis tests
     saturation on the mean (eq. 4.39, ``< 1``), which lets a mean of partly
     clipped repeats through as if it were a true value.
+
+    The repeats are taken one at a time (issue 19: a worker's memory), so memory is one
+    repeat and the accumulators: a float64 running sum, added in repeat order, divided by
+    m and rounded once to float32 (numpy's float64 mean over axis 0 of a C-ordered
+    (m, n, H, W) stack adds in the same order, so the values are the same bit for bit),
+    and the saturation mask. No (m, n, H, W) array or mask is made.
     """
-    a = np.asarray(linear)
-    if a.ndim != 4:
-        raise InputError(f"combine_repeats expects (repeats, exposures, H, W) linear mosaics, got shape {a.shape}")
-    if min(a.shape) < 1:
-        raise InputError(f"combine_repeats: empty input of shape {a.shape}")
-    if not np.issubdtype(a.dtype, np.floating):
-        raise InputError(f"combine_repeats expects linearised float values, got {a.dtype} (linearize the raw "
-                         f"mosaics first, glossrig.core.calibration.raw.linearize)")
-    _check_finite(a, "linear images")
-    combined = a.mean(axis=0, dtype=np.float64).astype(np.float32)
-    clipped = (a >= saturation).any(axis=0)
-    return combined, clipped  # type: ignore[return-value]  # numpy's stubs type any(axis=...) as bool | array
+    whole = isinstance(linear, np.ndarray)
+    if whole and linear.ndim != 4:
+        raise InputError(f"combine_repeats expects (repeats, exposures, H, W) linear mosaics, got shape {linear.shape}")
+    if whole and min(linear.shape) < 1:
+        raise InputError(f"combine_repeats: empty input of shape {linear.shape}")
+    total, clipped = np.zeros(0), np.zeros(0, bool)        # sized by the first repeat
+    m = 0
+    for rep in linear:              # not enumerate: its reused result tuple would hold the last repeat
+        r = np.asarray(rep)
+        del rep
+        if m == 0:
+            if r.ndim != 3:
+                raise InputError(f"combine_repeats expects repeats of (exposures, H, W) linear mosaics, got shape "
+                                 f"{r.shape}")
+            if min(r.shape) < 1:
+                raise InputError(f"combine_repeats: empty repeat of shape {r.shape}")
+            total, clipped = np.zeros(r.shape, np.float64), np.zeros(r.shape, bool)
+        elif r.shape != total.shape:
+            raise InputError(f"combine_repeats: repeat {m} has shape {r.shape}, repeat 0 {total.shape}; all "
+                             f"repeats must have one shape")
+        if not np.issubdtype(r.dtype, np.floating):
+            raise InputError(f"combine_repeats expects linearised float values, got {r.dtype} (linearize the raw "
+                             f"mosaics first, glossrig.core.calibration.raw.linearize)")
+        _check_finite(r, f"linear images (repeat {m})")
+        total += r
+        clipped |= r >= saturation
+        m += 1
+        del r                       # one repeat in memory while the next one is made
+    if m == 0:
+        raise InputError("combine_repeats: no repeats given")
+    total /= m
+    return total.astype(np.float32), clipped
 
 
 def _same(x, y) -> bool:
