@@ -34,6 +34,11 @@ WORK/trials.json; rerunning continues. After the trials, --nulls independent nul
 (seeds 5000+, WORK/nulls.json; materials in turn) measure each cause's null spread apart from
 the trials. Each trial records the commit (and whether core/ or twin/ had uncommitted
 changes) its capture and its diagnosis ran with. Writes validation/diagnose/blind_study.md.
+With ``--keep-raws`` the trials' raw files stay (about 110 MB a trial); ``--rediagnose``
+diagnoses every finished trial and null again whose diagnosis ran with other code than this
+checkout's - on the kept raws, else on the capture made again from the same seed (the twin is
+deterministic, so it is the same capture) - so a change to diagnose is measured on the same
+trials.
 
 What counts (issue 14): top-1 on single effects (the verdict is the hidden cause, or
 "unexplained" for axis_step); two-effect trials: both hidden causes among the first two of
@@ -224,7 +229,10 @@ def hide(cap: Path, material: str, seed: int, hidden: dict[str, float], null: Pa
         src = dst
 
 
-def trial(k: int, work: Path, a, bases: dict, ref) -> dict:
+def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False) -> dict:
+    """Trial k (``plan(k)``, magnitudes from the seed [2026, k]): the capture with its hidden causes,
+    then diagnose. ``reuse``: diagnose the capture already in WORK/tNNN (its raws kept by
+    ``--keep-raws``) instead of making it again; the same seed makes the same capture either way."""
     rng = np.random.default_rng([2026, k])
     material, causes = plan(k)
     hidden = {}
@@ -236,7 +244,8 @@ def trial(k: int, work: Path, a, bases: dict, ref) -> dict:
     cap = work / f"t{k:03d}"
     t0 = time.time()
     code = {"capture": code_version(), "diagnose": a.diagnose_code}
-    hide(cap, material, 1000 + k, hidden, null)
+    if not reuse:
+        hide(cap, material, 1000 + k, hidden, null)
     rep = run_diagnose(cap, work / f"t{k:03d}_report", a, fit, ref)
     by = {c["name"]: c for c in rep["causes"]}
     sig_unexpl = sorted((e for e in rep.get("unexplained", []) if e.get("significant")), key=lambda e: -e["effect"])
@@ -248,9 +257,11 @@ def trial(k: int, work: Path, a, bases: dict, ref) -> dict:
            "significant": {c: by[c]["significant"] for c in hidden if c in by},
            "unexplained_variable": sig_unexpl[0]["variable"] if sig_unexpl else None,
            "top": [(x["name"], round(x["gain"], 4), x["significant"]) for x in rep["causes"][:4]],
-           "time_s": time.time() - t0, "code": code, **({"error": rep["error"]} if "error" in rep else {})}
-    for f in cap.glob("*.dng"):          # keep truth and manifest, drop the raw files
-        f.unlink()
+           "time_s": time.time() - t0, "code": code, "capture_reused": reuse,
+           **({"error": rep["error"]} if "error" in rep else {})}
+    if not a.keep_raws:
+        for f in cap.glob("*.dng"):      # keep truth and manifest, drop the raw files
+            f.unlink()
     return res
 
 
@@ -261,14 +272,30 @@ def null_capture(j: int, work: Path, a, bases: dict, ref) -> dict:
     cap = work / f"n{j:02d}"
     t0 = time.time()
     code = {"capture": code_version(), "diagnose": a.diagnose_code}
-    simulate(cap, material, NULL_SEED + j)
+    if not has_raws(cap):
+        simulate(cap, material, NULL_SEED + j)
     rep = run_diagnose(cap, work / f"n{j:02d}_report", a, bases[material][1], ref)
-    for f in cap.glob("*.dng"):
-        f.unlink()
+    if not a.keep_raws:
+        for f in cap.glob("*.dng"):
+            f.unlink()
     return {"null": j, "material": material, "seed": NULL_SEED + j, "verdict": rep["verdict"],
             "time_s": time.time() - t0, "code": code,
             "causes": {c["name"]: {"gain": c["gain"], "magnitude": c["magnitude"], "significant": c["significant"],
                                    "threshold": c["threshold"], "kind": c.get("kind")} for c in rep["causes"]}}
+
+
+def has_raws(cap: Path) -> bool:
+    """Whether the capture folder still holds its raw files (a complete capture kept by --keep-raws)."""
+    from glossrig.core.capture import capture_complete
+
+    return cap.is_dir() and any(cap.glob("*.dng")) and capture_complete(cap)
+
+
+def stale(record: dict, current: dict | None) -> bool:
+    """With --rediagnose: a trial or null whose diagnosis ran with other code than this
+    checkout's (or with code that was not recorded: a run outside a git checkout)."""
+    ran = record.get("code", {}).get("diagnose")
+    return current is None or ran is None or ran != current
 
 
 # ------------------------------------------------------------------ scoring and the report
@@ -393,6 +420,12 @@ def main(argv=None):
     ap.add_argument("--reference", help="lambert:0.8 reference capture (LEDs 6 and 9 at rotation 0 or a superset)")
     ap.add_argument("--nulls", type=int, default=6, help="independent null captures after the trials")
     ap.add_argument("--summary-only", action="store_true", help="rewrite the Markdown from WORK/trials.json")
+    ap.add_argument("--keep-raws", action="store_true",
+                    help="keep each trial's raw files (about 110 MB a trial) so --rediagnose need not simulate again")
+    ap.add_argument("--rediagnose", action="store_true",
+                    help="diagnose again, with this checkout's code, every finished trial and null whose "
+                         "diagnosis ran with other code (on its kept raws, else on the capture made again "
+                         "from the same seed)")
     a = ap.parse_args(argv)
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -411,6 +444,14 @@ def main(argv=None):
         bases = {m: setup(work, a, m) for m in MATERIALS}
         ref = measure_capture(a.reference, load_camera(a.camera), load_lamps(a.lamps))
         one_calibration(bases[MATERIALS[0]][0], a.camera)
+        if a.rediagnose:
+            for i, t in enumerate(done):
+                if stale(t, a.diagnose_code):
+                    k = t["trial"]
+                    done[i] = trial(k, work, a, bases, ref, reuse=has_raws(work / f"t{k:03d}"))
+                    store.write_text(json.dumps(done, indent=1))
+                    print(json.dumps({x: done[i][x] for x in ("trial", "material", "hidden", "verdict", "ranking")}),
+                          flush=True)
         have = {t["trial"] for t in done}
         for k in range(a.trials):
             if k in have:
@@ -422,6 +463,8 @@ def main(argv=None):
                   flush=True)
         nstore = work / "nulls.json"
         nulls = json.loads(nstore.read_text()) if nstore.exists() else []
+        if a.rediagnose:
+            nulls = [n for n in nulls if not stale(n, a.diagnose_code)]     # made again below
         for j in range(a.nulls):
             if j in {n["null"] for n in nulls}:
                 continue
