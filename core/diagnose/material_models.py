@@ -1,4 +1,4 @@
-"""Material and reference extensions of the thesis's model (issue 7, real measured data).
+"""Material extensions of the thesis's model, and the reference renormalisation (issues 7 and 14).
 
 The thesis measures a BRDF as ``f = (albedo / pi) S / R`` with a Lambertian white
 reference of albedo 0.8 (eq. 4.78) and fits the extended Ward lobe (eq. 4.79-4.80).
@@ -32,10 +32,10 @@ The named departures from that model, each a parameterised extension:
 :func:`fit_lobe` fits ``rho_d / pi + rho_s * lobe`` with the objective of
 ``glossrig fit`` (eq. 4.81-4.82, :func:`glossrig.core.fitting.fit.peak_weight`), rho_d and
 rho_s solved linearly (variable projection) and the lobe's shape by trust-region
-least squares. :func:`material_causes` registers the lobe causes in the diagnose catalogue
-(and the reference cause for a :class:`~glossrig.core.diagnose.data.BrdfData` that carries a
-``reference_brdf`` without being calibrated with it; :func:`glossrig.core.diagnose.diagnose`
-calibrates instead and never sets it).
+least squares. :func:`material_causes` registers the material causes (lobe shapes, grazing
+term) in the diagnose catalogue. The reference's own BRDF is no cause: with it supplied,
+diagnose renormalises the data with :func:`renormalise` before it tests any cause
+(``glossrig diagnose --reference-brdf``, report.json ``meta.reference_calibration``).
 """
 from __future__ import annotations
 
@@ -46,7 +46,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from glossrig.core.diagnose.data import LUMA
 from glossrig.core.models.ward import WardParams, ward_from_angles
 
 ANGLES = ("theta_in", "phi_in", "theta_out", "phi_out", "theta_h", "phi_h", "theta_d")
@@ -201,12 +200,24 @@ def fit_weights(t) -> np.ndarray:
 
 
 def _linear(L, y, W):
-    """Non-negative weighted least squares of y on [1/pi, L]: (rho_d, rho_s)."""
-    from glossrig.core.fitting.fit import _nnls2
+    """Bounded weighted least squares of y on [1/pi, L]: (rho_d, rho_s), rho_d >= 0 and
+    0 <= rho_s <= :data:`glossrig.core.fitting.fit.RHO_S_MAX` (energy conservation, thesis
+    eq. 2.4: every lobe here reflects about rho_s of the light, a microfacet lobe at most
+    rho_s). Unbounded, a lobe that is ~0 on every row (its peak where no row is) takes any
+    amplitude: the column's far tail (for Ward's lobe the floor of the capped exponent,
+    ``glossrig.core.models.ward.EXPONENT_CAP``) is then fitted with rho_s ~ 1e80. Bounded, such
+    a lobe is still unseen by the data (below ``LOBE_UNSEEN`` of the largest datum on every
+    weighted row) and any rho_s fits as well: it is then 0, as :func:`glossrig.core.fitting.fit.fit_ward`
+    reports it, so that the lobe's peak is never extrapolated where no row is."""
+    from glossrig.core.fitting.fit import LOBE_UNSEEN, RHO_S_MAX, _nnls2
 
+    L, y, W = np.asarray(L, float), np.asarray(y, float), np.asarray(W, float)
     W2 = W * W
     a, b, _ = _nnls2(np.sum(W2) / np.pi ** 2, np.sum(W2 * L) / np.pi, np.sum(W2 * L * L),
-                     np.sum(W2 * y) / np.pi, np.sum(W2 * y * L), np.sum(W2 * y * y))
+                     np.sum(W2 * y) / np.pi, np.sum(W2 * y * L), np.sum(W2 * y * y), b_max=RHO_S_MAX)
+    seen = W2 > 0
+    if b > 0 and seen.any() and b * np.max(np.abs(L[seen])) <= LOBE_UNSEEN * np.max(np.abs(y[seen])):
+        a, b = max(np.pi * np.sum(W2 * y) / np.sum(W2), 0.0), 0.0
     return float(a), float(b)
 
 
@@ -300,11 +311,11 @@ def fresnel_profile(a: dict, y, W, folds, grid, kind: str = "ggx", start=(0.1, 0
 LOBE_FIT_ROWS = 8_000
 
 
-def _refit_cause(m, a, kind, fac, start):
+def _refit_cause(m, a, kind, start):
     """Held-out scores of a lobe of ``kind`` refitted per fold (shape and rho_d, rho_s; on at most
-    LOBE_FIT_ROWS of the fold's training rows) to the data divided by ``fac``, predicting ``fac``
-    times the fit, against the base model (Ward lobe of the fit, rho_d and rho_s re-solved per
-    fold on all its training rows). Returns (error, base error, fold gains, fit on all rows)."""
+    LOBE_FIT_ROWS of the fold's training rows), against the base model (Ward lobe of the fit, rho_d
+    and rho_s re-solved per fold on all its training rows). Returns (error, base error, fold gains,
+    fit on all rows)."""
     from glossrig.core.diagnose.catalogue import chi2
 
     c = m.cols
@@ -319,18 +330,18 @@ def _refit_cause(m, a, kind, fac, start):
         if rows.size > LOBE_FIT_ROWS:
             rows = np.sort(rng.choice(rows, LOBE_FIT_ROWS, replace=False))
         sub = {k: v[rows] for k, v in a.items()}
-        f = fit_lobe(sub, y[rows] / fac[rows], fac[rows] / sig[rows], kind, start, uncertainty=False)
-        p1 = f.predict(a) * fac
+        f = fit_lobe(sub, y[rows], 1 / sig[rows], kind, start, uncertainty=False)
+        p1 = f.predict(a)
         _, p0, _ = m.solve_linear([one, c["L"]], train)
         e0, e1 = chi2((y - p0)[test], sig[test]), chi2((y - p1)[test], sig[test])
         e0s, e1s, n_tot = e0s + e0 * test.sum(), e1s + e1 * test.sum(), n_tot + test.sum()
         gains.append((e0 - e1) / e0)
-    return e1s / n_tot, e0s / n_tot, gains, fit_lobe(a, y / fac, fac / sig, kind, start)
+    return e1s / n_tot, e0s / n_tot, gains, fit_lobe(a, y, 1 / sig, kind, start)
 
 
 def material_causes(m) -> list:
-    """Causes of the catalogue for the material and reference models (BRDF space,
-    leave-one-LED-out folds of :class:`glossrig.core.diagnose.catalogue.BrdfModel`)."""
+    """Causes of the catalogue for the material models (BRDF space, leave-one-LED-out folds of
+    :class:`glossrig.core.diagnose.catalogue.BrdfModel`)."""
     from glossrig.core.diagnose.catalogue import CauseResult
 
     c = m.cols
@@ -356,7 +367,7 @@ def material_causes(m) -> list:
            "part at grazing angles and on rough lobes, where masking removes light.")
     lobe_docs.append(("beckmann", "beckmann_lobe", doc, "Beckmann roughness, radians"))
     for kind, name, doc, unit in lobe_docs:
-        e1, e0, gains, f = _refit_cause(m, a, kind, np.ones_like(c["y"]), start)
+        e1, e0, gains, f = _refit_cause(m, a, kind, start)
         out.append(CauseResult(name, "brdf", doc, dict({k: getattr(f, k) for k in names}, unit=unit),
                                f.stderr, e1, e0, gains, 0, magnitude=f.alpha_x, prediction=f.predict(a)))
 
@@ -375,26 +386,4 @@ def material_causes(m) -> list:
                              lambda f90: ([one * grazing_factor(c["theta_in"], c["theta_out"], f90), c["L"]], None),
                              GRAZING_F90_RANGE, "F_D90", "diffuse factor at grazing incidence and viewing"))
 
-    # ---- the reference's own BRDF instead of Lambertian albedo 0.8 (no extra parameter); never on data already
-    # calibrated with it (diagnose renormalises with a supplied reference BRDF and does not test it as a cause)
-    ref = getattr(m.data, "reference_brdf", None)
-    if ref is not None and getattr(m.data, "reference_calibration", None) is None:
-        doc = ("Non-Lambertian diffuse reference: the thesis divides by a Lambertian white of albedo 0.8 "
-               "(eq. 4.78); the real reference's BRDF f_ref(wi, wo) varies with the angles and has another "
-               "albedo, leaving a factor (albedo/pi) / f_ref on every measured value. Corrected with the "
-               "reference's measured BRDF at each sample's angles and the Ward lobe refitted to the corrected "
-               "values. The scale part is absorbed by rho_d, rho_s; only the angular shape of the correction can "
-               "lower the held-out error, and a wrong lobe shape may have absorbed part of it.")
-        rgb = t[["r", "g", "b"]].to_numpy(float)
-        yc = renormalise(rgb, ref(t), m.data.albedo) @ LUMA
-        fac = c["y"] / np.where(yc > 0, yc, np.nan)
-        ok = np.isfinite(fac) & (fac > 0)
-        fac = np.where(ok, fac, 1.0)
-        e1, e0, gains, f = _refit_cause(m, a, "ward", fac, start)
-        corr = 1 / fac[ok]
-        params = dict({k: getattr(f, k) for k in names}, median_correction=float(np.median(corr)),
-                      spread_p5_p95=[float(np.percentile(corr, 5)), float(np.percentile(corr, 95))],
-                      unit="corrected / thesis-normalised value; Ward parameters of the corrected data")
-        out.append(CauseResult("reference_brdf", "brdf", doc, params, f.stderr, e1, e0, gains, 0,
-                               magnitude=float(np.median(corr)), prediction=f.predict(a) * fac))
     return out

@@ -8,7 +8,8 @@ the weighted least squares of eq. 4.81,
 with ``w_i`` the peak-emphasising weight of eq. 4.82 (see :func:`peak_weight`)
 and ``v_i`` the samples table's own ``weight`` column (inverse-variance-like,
 1 when unknown), within the bounds of Table 4.2: ``rho_d, rho_s >= 0``,
-``0 < alpha <= 0.5``. ``alpha`` is kept above ``ALPHA_MIN = 1e-4`` (Table 4.2
+``0 < alpha <= 0.5``, and ``rho_s <= RHO_S_MAX`` (energy conservation, eq. 2.4; see
+:data:`RHO_S_MAX` for why the fit needs that bound). ``alpha`` is kept above ``ALPHA_MIN = 1e-4`` (Table 4.2
 says 0, where the model is undefined; a lobe of slope width 1e-4 is far below
 anything the rig can resolve). Table 4.2 bounds the rotation by 0..360 (degrees;
 Table 6.3: 0..2 pi); it is reported in radians in [0, pi), which loses nothing
@@ -91,6 +92,27 @@ from glossrig.core.fitting.footprint_model import SampleFootprint, footprint_eva
 
 PARAM_NAMES = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
 ALPHA_MIN = 1e-4
+#: Upper bound of ``rho_s`` in the fit (thesis Table 4.2 sets none). Why one is needed: the
+#: lobe's exponent is capped at :data:`glossrig.core.models.ward.EXPONENT_CAP`, so far from its
+#: peak a lobe is not 0 but the floor ``exp(-200) g / (4 pi ax ay)`` with ``g = 1 / sqrt(cos
+#: theta_in cos theta_out)``. With ``rho_s`` unbounded the fit could scale that floor by ~1e80
+#: into a finite term proportional to ``g`` (a rise toward grazing angles that is no part of eq.
+#: 4.79), while the lobe's own peak, between the samples, reached 1e80 1/sr: a channel without
+#: a measured highlight (issue 14: chm_mint's red channel, dark wherever the highlight is) was
+#: fitted with ``rho_s = 1.1e81``, which then filled the luminance's missing red values and
+#: made diagnose's held-out error 2.4e66. The bound is energy conservation (thesis eq. 2.4):
+#: a Ward lobe of unit ``rho_s`` reflects at least 0.586 of the light at normal viewing
+#: (``alpha = 0.5``; :func:`glossrig.core.models.ward.ward_albedo`, 0.97 at ``alpha = 0.1``),
+#: so a physical lobe has ``rho_s <= 1 / 0.586 = 1.7``; the factor 2 above that leaves room
+#: for data whose scale is off through the reference (the thesis assumes albedo 0.8, eq. 4.78;
+#: the real white paper has 0.84). The floor is then below
+#: ``RHO_S_MAX exp(-200) / (4 pi ALPHA_MIN^2) g = 4e-80 g`` 1/sr, no value the rig can see.
+#: A fit that ends on the bound lists ``rho_s`` in ``at_bound``.
+RHO_S_MAX = 3.5
+#: A lobe whose value is at most this fraction of the largest datum at every row is one the data
+#: do not see (the criterion ``at_bound`` applies to a negligible lobe); :func:`fit_ward` reports
+#: no lobe then (rho_s = 0) instead of the arbitrary peak the solver left it with.
+LOBE_UNSEEN = 1e-6
 CHANNELS = ("luminance", "r", "g", "b")
 WEIGHTINGS = ("mirror", "literal", "none")
 CANONICAL_FORM = "alpha_x >= alpha_y, lobe_rotation in [0, pi) radians"
@@ -310,9 +332,12 @@ def _grid_lobes():
     return np.array(lobes)
 
 
-def _nnls2(uu, uv, vv, uz, vz, zz):
-    """Closed-form non-negative least squares for two columns (vectorised over lobes):
-    minimise zz - 2 a uz - 2 b vz + a^2 uu + 2 a b uv + b^2 vv over a, b >= 0."""
+def _nnls2(uu, uv, vv, uz, vz, zz, b_max: float = math.inf):
+    """Closed-form bounded least squares for two columns (vectorised over lobes):
+    minimise zz - 2 a uz - 2 b vz + a^2 uu + 2 a b uv + b^2 vv over a >= 0, 0 <= b <= b_max.
+    The cost is a convex quadratic, so its minimum over the box is the unconstrained one
+    where that lies inside, else the best of the minima along the edges a = 0, b = 0 and
+    b = b_max (each a convex 1-D minimum clipped to the edge)."""
     def cost(a, b):
         return zz - 2 * a * uz - 2 * b * vz + a * a * uu + 2 * a * b * uv + b * b * vv
 
@@ -320,15 +345,23 @@ def _nnls2(uu, uv, vv, uz, vz, zz):
     with np.errstate(divide="ignore", invalid="ignore"):
         a = np.where(det > 0, (vv * uz - uv * vz) / det, -1.0)
         b = np.where(det > 0, (uu * vz - uv * uz) / det, -1.0)
-        b_only = np.where(vv > 0, np.maximum(vz / vv, 0.0), 0.0)
+        b_only = np.where(vv > 0, np.clip(vz / vv, 0.0, b_max), 0.0)
     a_only = np.maximum(uz / uu, 0.0)
-    ok = (a >= 0) & (b >= 0)
+    ok = (a >= 0) & (b >= 0) & (b <= b_max)
     c_full = np.where(ok, cost(np.where(ok, a, 0), np.where(ok, b, 0)), np.inf)
     c_a, c_b = cost(a_only, 0.0), cost(0.0, b_only)
-    best = np.argmin(np.stack([c_full, c_a, c_b]), axis=0)
-    A = np.choose(best, [np.where(ok, a, 0), a_only, np.zeros_like(a_only)])
-    B = np.choose(best, [np.where(ok, b, 0), np.zeros_like(b_only), b_only])
-    C = np.choose(best, [c_full, c_a, c_b])
+    cands_a = [np.where(ok, a, 0), a_only, np.zeros_like(a_only)]
+    cands_b = [np.where(ok, b, 0), np.zeros_like(b_only), b_only]
+    costs = [c_full, c_a, c_b]
+    if math.isfinite(b_max):        # the edge b = b_max
+        a_top = np.maximum((uz - b_max * uv) / uu, 0.0)
+        cands_a.append(a_top * np.ones_like(b_only))
+        cands_b.append(np.full_like(b_only, b_max))
+        costs.append(cost(a_top, b_max) * np.ones_like(b_only))
+    best = np.argmin(np.stack(np.broadcast_arrays(*costs)), axis=0)
+    A = np.choose(best, np.broadcast_arrays(*cands_a))
+    B = np.choose(best, np.broadcast_arrays(*cands_b))
+    C = np.choose(best, np.broadcast_arrays(*costs))
     return A, B, C
 
 
@@ -353,7 +386,7 @@ def _grid_search(d: _Data, keep=None):
         vz = Q @ W2y
         np.square(Q, out=Q)
         vv = Q @ W2
-        a, b, cost = _nnls2(uu, uv, vv, uz, vz, zz)
+        a, b, cost = _nnls2(uu, uv, vv, uz, vz, zz, b_max=RHO_S_MAX)
         out[rows] = np.stack([a, b, cost], axis=1)
     return lobes, out
 
@@ -637,14 +670,14 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
     if not cand:
         raise InputError("no starting point: give starts or enable the grid")
     lb = np.array([0.0, 0.0, math.log(ALPHA_MIN), math.log(ALPHA_MIN), -np.inf])
-    ub = np.array([np.inf, np.inf, math.log(ALPHA_MAX), math.log(ALPHA_MAX), np.inf])
+    ub = np.array([np.inf, RHO_S_MAX, math.log(ALPHA_MAX), math.log(ALPHA_MAX), np.inf])
     yscale = max(float(np.max(np.abs(d.y))), 1e-12)
 
     def prepare(x):
         # strictly inside the bounds; rho_s = 0 would leave the lobe without a gradient
         x = np.array(x, float)
         x[0] = max(x[0], 1e-6 * yscale)
-        x[1] = max(x[1], 1e-4 * yscale * ALPHA_MIN)
+        x[1] = min(max(x[1], 1e-4 * yscale * ALPHA_MIN), RHO_S_MAX * (1 - 1e-9))
         x[2:4] = np.clip(x[2:4], lb[2] + 1e-9, ub[2] - 1e-9)
         return x
 
@@ -730,7 +763,22 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
                         "x": [float(v) for v in best.x], "cost": float(best.cost), "nfev": int(best.nfev),
                         "status": int(best.status), "rows": n, "time_s": time.perf_counter() - t1})
         say(f"{channel}: pixel quadrature {d.fp.orders} for the narrower lobe, cost {best.cost:.6g}")
-    x = best.x
+    x = np.array(best.x, float)
+    if x[1] > 0 and float(np.max(np.abs(_model(np.r_[0.0, x[1:]], d)))) <= LOBE_UNSEEN * yscale:
+        # a lobe the data do not see: below LOBE_UNSEEN of the data at every row, its peak where no row is. Any
+        # (rho_s, alpha) of such a lobe fits equally well (the trust region may have carried rho_s anywhere along
+        # that flat direction), and its off-data peak would be an extrapolation without data: the data
+        # determine no lobe, reported as rho_s = 0 (at_bound; the lobe's shape then has an infinite standard error)
+        history.append({"stage": "lobe unseen", "x": [float(v) for v in x], "rows": n})
+        say(f"{channel}: the fitted lobe is below {LOBE_UNSEEN:g} of the data at every sample (its peak lies where "
+            f"no sample is): no lobe, rho_s = 0")
+        x[1] = 0.0
+    f_fit = _model(x, d)
+    if not (np.all(np.isfinite(x)) and math.isfinite(float(best.cost)) and np.all(np.isfinite(f_fit))):
+        # the bounds keep every parameter finite on finite data; what is left is an overflow of the data's own scale
+        raise InputError(f"{channel}: the Ward fit ended on non-finite parameters or model values "
+                         f"({', '.join(f'{v:.4g}' for v in x)}; cost {float(best.cost):.4g}): the values (largest "
+                         f"{yscale:.4g}) overflow the least-squares sums; give BRDF values in 1/sr")
 
     # Uncertainty (sandwich) in the solver's parameters -> reported parameters.
     r = fun(x)
@@ -745,13 +793,16 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
     at_bound = []       # the solver stays strictly inside: "at" = negligible next to the data
     if x[0] / np.pi <= 1e-6 * yscale:
         at_bound.append("rho_d")
-    if x[1] / (4 * np.pi * ax * ay) <= 1e-6 * yscale:
+    if x[1] / (4 * np.pi * ax * ay) <= LOBE_UNSEEN * yscale:
         at_bound.append("rho_s")
+    elif x[1] >= RHO_S_MAX * (1 - 1e-6):
+        at_bound.append("rho_s")
+        say(f"{channel}: rho_s ends on its bound {RHO_S_MAX:g} (energy conservation with a factor 2 for the data's "
+            f"scale, RHO_S_MAX): the lobe is not a physical one, or the data's scale is off")
     for name, lx in (("alpha_x", math.log(params.alpha_x)), ("alpha_y", math.log(params.alpha_y))):
         if lx <= lb[2] + 1e-6 or lx >= ub[2] - 1e-6:
             at_bound.append(name)
-    f = _model(x, d)
-    stats = _residual_stats(d.y, f, d.W, clip, clip_model)
+    stats = _residual_stats(d.y, f_fit, d.W, clip, clip_model)
     stats["n_dropped_zero_weight"] = int(n_all - n)
     unc = None
     if budget:
@@ -963,7 +1014,7 @@ def shared_lobe_albedos(df, lobe: WardParams, *, weighting: str = "mirror", clip
             Wc = Wc * (y < clip)
         W2 = Wc * Wc
         A, Bs, _ = _nnls2(np.sum(W2) / np.pi ** 2, np.sum(W2 * B) / np.pi, np.sum(W2 * B * B),
-                          np.sum(W2 * y) / np.pi, np.sum(W2 * y * B), np.sum(W2 * y * y))
+                          np.sum(W2 * y) / np.pi, np.sum(W2 * y * B), np.sum(W2 * y * y), b_max=RHO_S_MAX)
         out["rho_d"].append(float(A))
         out["rho_s"].append(float(Bs))
     return out
