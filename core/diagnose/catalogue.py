@@ -54,10 +54,13 @@ PARAM_PENALTY = 0.002      # added per extra parameter
 THRESHOLDS = {"brdf": (GAIN_THRESHOLD, PARAM_PENALTY), "frames": (0.0005, 0.0001), "pixels": (0.02, 0.002)}
 HUBER_C = 3.0              # rows beyond HUBER_C sigma of the base model weigh as |r| instead of r^2
 MAX_BRDF_ROWS = 60_000
-#: what each named cause blames: the instrument (rig, light, camera), the material's model or the
-#: reference's; causes not listed (all frame- and pixel-space causes) are instrument causes
+#: what each named cause blames: the instrument (rig, light, camera) or the material's model;
+#: causes not listed (all frame- and pixel-space causes) are instrument causes. The kind
+#: "reference" (report.json's third kind, issue 14 item 5) has no cause any more: the reference's
+#: own BRDF is a calibration step applied before the causes (``--reference-brdf``, report.json
+#: meta.reference_calibration), never a verdict
 KINDS = {"ggx_lobe": "material", "fresnel": "material", "flexible_material": "material",
-         "beckmann_lobe": "material", "grazing_lobe": "material", "reference_brdf": "reference"}
+         "beckmann_lobe": "material", "grazing_lobe": "material"}
 MAX_PIXELS = 15_000
 
 

@@ -326,7 +326,7 @@ def false_alarm(t: dict) -> bool:
 
     if t["material"] in WARD_MATERIALS:
         return t["verdict"] != "none"
-    return t["verdict"] not in ("none", *KINDS) or t["verdict"] == "reference_brdf"
+    return t["verdict"] not in ("none", *KINDS)
 
 
 def label(t: dict) -> str:
