@@ -436,15 +436,22 @@ def report(results: list[dict], command: str) -> str:
 
 
 def design_comparison(results: list[dict], leds: str, rotations: str, scale: float = 0.1,
-                      camera: Path | None = None) -> tuple[str, dict]:
+                      camera: Path | dict[int, Path] | None = None) -> tuple[str, dict]:
     """``glossrig design errors``' combined uncertainty (:func:`glossrig.core.design.error_budget.design_budget`,
     the study's LEDs and rotations, LED aperture 0 as the twin's, the reference's angular
-    variation 0 as the study states it to the fit, and with ``camera`` (a camera.json of
-    the study: its views) the intrinsics drawn as the fit draws them) against the RMS of the
-    actual errors of the study's measurements at ``scale``, for the Table 9.1 materials
-    (the named ones of :data:`MATERIALS`): per material and parameter the ratio
-    predicted / actual RMS, and per parameter over the materials pooled (root mean
-    square of the predictions against that of the errors).
+    variation 0 as the study states it to the fit, and with ``camera`` the intrinsics drawn as
+    the fit draws them) against the RMS of the actual errors of the study's measurements at
+    ``scale``, for the Table 9.1 materials (the named ones of :data:`MATERIALS`): per material
+    and parameter the ratio predicted / actual RMS, and per parameter over the materials
+    pooled (root mean square of the predictions against that of the errors).
+
+    ``camera``: one camera.json (its views) for every measurement, or a camera.json per
+    round, ``{round: path}``. With one per round, each measurement's prediction is the one
+    ``glossrig design errors --camera`` gives for the calibration that measurement was made
+    with - what a user who designs with their own calibration gets - and the prediction set
+    against the RMS of a material's errors over the rounds is the RMS of its measurements'
+    predictions: the rounds' calibrations differ in quality (their views are drawn afresh),
+    and the errors' RMS spans them all.
 
     How far a right prediction may lie from 1: the RMS of ``n`` errors drawn with standard
     deviation ``u`` is ``u sqrt(chi2_n / n)``, so predicted / RMS lies in
@@ -463,10 +470,22 @@ def design_comparison(results: list[dict], leds: str, rotations: str, scale: flo
 
     named = [m for m in MATERIALS if not m.startswith("ward:")]
     rig = load_rig(default_rig_path())
-    pred = design_budget(rig, parse_materials(",".join(named)), rotations=[float(r) for r in rotations.split(",")],
-                         led_ids=[int(i) for i in leds.split(",")], scale=scale, led_aperture=0.0,
-                         angular_u=0.0,        # as the study states it for the fit: the twin's reference is Lambertian
-                         camera_views=None if camera is None else CameraViews.from_camera_doc(load_camera(camera).meta))
+
+    def predict(cam: Path | None) -> dict:
+        return design_budget(rig, parse_materials(",".join(named)), rotations=[float(r) for r in rotations.split(",")],
+                             led_ids=[int(i) for i in leds.split(",")], scale=scale, led_aperture=0.0,
+                             angular_u=0.0,    # as the study states it for the fit: the twin's reference is Lambertian
+                             camera_views=None if cam is None else CameraViews.from_camera_doc(load_camera(cam).meta))
+
+    rounds = sorted({r["spec"]["round"] for r in results if r["spec"]["scale"] == scale})
+    if isinstance(camera, dict):
+        missing = [r for r in rounds if r not in camera]
+        if missing:
+            raise ValueError(f"no camera.json for rounds {missing}")
+        by_round = {r: predict(camera[r]) for r in rounds}
+    else:
+        one = predict(camera)
+        by_round = {r: one for r in rounds}
     lines: list[str] = []
     summary = {}
     for without_albedo in (False, True):
@@ -490,11 +509,12 @@ def design_comparison(results: list[dict], leds: str, rotations: str, scale: flo
                 t = _canonical_truth(rs[0]["truth"])
                 norm = 1.0 if p == "lobe_rotation" else abs(t[p])
                 err = np.array([r["with_calibration"]["coverage"][p]["error"] / norm for r in rs])
-                u = pred[m]["combined"][p]
+                us = [by_round[r["spec"]["round"]][m]["combined"][p] for r in rs]
+                u = None if any(x is None for x in us) else math.sqrt(float(np.mean(np.square(us))))
                 if without_albedo and u is not None:
                     # the fitted albedos scale with the stated reference albedo
                     err = err - np.array([r["spec"]["albedo_stated"] / REFERENCE_ALBEDO - 1 for r in rs])
-                    alb = pred[m]["stated"]["albedo_u_rel"] * abs(t[p])
+                    alb = by_round[rs[0]["spec"]["round"]][m]["stated"]["albedo_u_rel"] * abs(t[p])
                     u = math.sqrt(max(u ** 2 - alb ** 2, 0.0))
                 rms = math.sqrt(float(np.mean(np.square(err))))
                 u = None if u is None else u / norm
@@ -589,8 +609,10 @@ def main(argv=None) -> list[dict]:
     results = load_results(work)
     print(report(results, command))
     if a.design:
-        cam = work / "cal_round0" / "camera.json"       # the intrinsics drawn as round 0's calibration states them
-        text, _ = design_comparison(results, a.leds, a.rotations, camera=cam if cam.is_file() else None)
+        # each measurement's prediction from the calibration it was made with (design_comparison)
+        cams = {r: work / f"cal_round{r}" / "camera.json" for r in range(len(a.scales.split(",")))}
+        cam = {r: c for r, c in cams.items() if c.is_file()} or None
+        text, _ = design_comparison(results, a.leds, a.rotations, camera=cam)
         print("\n`glossrig design errors` (combined) against the actual errors at scale 0.1:\n")
         print(text)
     return results
