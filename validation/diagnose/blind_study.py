@@ -229,10 +229,11 @@ def hide(cap: Path, material: str, seed: int, hidden: dict[str, float], null: Pa
         src = dst
 
 
-def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False) -> dict:
+def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False, prev: dict | None = None) -> dict:
     """Trial k (``plan(k)``, magnitudes from the seed [2026, k]): the capture with its hidden causes,
     then diagnose. ``reuse``: diagnose the capture already in WORK/tNNN (its raws kept by
-    ``--keep-raws``) instead of making it again; the same seed makes the same capture either way."""
+    ``--keep-raws``) instead of making it again; the same seed makes the same capture either way.
+    ``prev``: the trial's earlier record (a reused capture keeps its recorded code version)."""
     rng = np.random.default_rng([2026, k])
     material, causes = plan(k)
     hidden = {}
@@ -243,7 +244,9 @@ def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False) -> dict:
     null, fit = bases[material]
     cap = work / f"t{k:03d}"
     t0 = time.time()
-    code = {"capture": code_version(), "diagnose": a.diagnose_code}
+    # a reused capture keeps the code version it was made with (its earlier record)
+    code = {"capture": (prev or {}).get("code", {}).get("capture") if reuse else code_version(),
+            "diagnose": a.diagnose_code}
     if not reuse:
         hide(cap, material, 1000 + k, hidden, null)
     rep = run_diagnose(cap, work / f"t{k:03d}_report", a, fit, ref)
@@ -271,14 +274,16 @@ def null_capture(j: int, work: Path, a, bases: dict, ref) -> dict:
     material = MATERIALS[j % len(MATERIALS)]
     cap = work / f"n{j:02d}"
     t0 = time.time()
-    code = {"capture": code_version(), "diagnose": a.diagnose_code}
-    if not has_raws(cap):
+    reuse = has_raws(cap)
+    # a reused null capture's code version is not known here (its earlier record was dropped): None
+    code = {"capture": None if reuse else code_version(), "diagnose": a.diagnose_code}
+    if not reuse:
         simulate(cap, material, NULL_SEED + j)
     rep = run_diagnose(cap, work / f"n{j:02d}_report", a, bases[material][1], ref)
     if not a.keep_raws:
         for f in cap.glob("*.dng"):
             f.unlink()
-    return {"null": j, "material": material, "seed": NULL_SEED + j, "verdict": rep["verdict"],
+    return {"null": j, "material": material, "seed": NULL_SEED + j, "verdict": rep["verdict"], "capture_reused": reuse,
             "time_s": time.time() - t0, "code": code,
             "causes": {c["name"]: {"gain": c["gain"], "magnitude": c["magnitude"], "significant": c["significant"],
                                    "threshold": c["threshold"], "kind": c.get("kind")} for c in rep["causes"]}}
@@ -293,9 +298,11 @@ def has_raws(cap: Path) -> bool:
 
 def stale(record: dict, current: dict | None) -> bool:
     """With --rediagnose: a trial or null whose diagnosis ran with other code than this
-    checkout's (or with code that was not recorded: a run outside a git checkout)."""
+    checkout's, with code that was not recorded (a run outside a git checkout) or with
+    uncommitted changes."""
     ran = record.get("code", {}).get("diagnose")
-    return current is None or ran is None or ran != current
+    # uncommitted changes: two different edits on one commit look alike, so they count as other code
+    return current is None or ran is None or ran != current or bool(ran.get("dirty"))
 
 
 # ------------------------------------------------------------------ scoring and the report
@@ -448,7 +455,7 @@ def main(argv=None):
             for i, t in enumerate(done):
                 if stale(t, a.diagnose_code):
                     k = t["trial"]
-                    done[i] = trial(k, work, a, bases, ref, reuse=has_raws(work / f"t{k:03d}"))
+                    done[i] = trial(k, work, a, bases, ref, reuse=has_raws(work / f"t{k:03d}"), prev=t)
                     store.write_text(json.dumps(done, indent=1))
                     print(json.dumps({x: done[i][x] for x in ("trial", "material", "hidden", "verdict", "ranking")}),
                           flush=True)
