@@ -247,12 +247,16 @@ def _weights(df, weighting: str, use_weight_column: bool) -> np.ndarray:
 
 
 def _albedos(B, y, W):
-    """Non-negative (rho_d, rho_s, cost) minimising sum (W (y - rho_d/pi - rho_s B))^2."""
-    from glossrig.core.fitting.fit import _nnls2
+    """(rho_d, rho_s, cost) minimising sum (W (y - rho_d/pi - rho_s B))^2 with rho_d >= 0 and
+    0 <= rho_s <= :data:`~glossrig.core.fitting.fit.RHO_S_MAX`: a microfacet lobe of unit rho_s
+    (D G / (4 cos cos) with Smith's G) reflects at most all the light, so the Ward fit's
+    energy bound holds here too; without it a lobe whose peak lies between the samples could
+    scale its tail into a term of any size (glossrig.core.fitting.fit, RHO_S_MAX)."""
+    from glossrig.core.fitting.fit import RHO_S_MAX, _nnls2
 
     W2 = W * W
     return _nnls2(np.sum(W2) / np.pi ** 2, np.sum(W2 * B) / np.pi, np.sum(W2 * B * B),
-                  np.sum(W2 * y) / np.pi, np.sum(W2 * y * B), np.sum(W2 * y * y))
+                  np.sum(W2 * y) / np.pi, np.sum(W2 * y * B), np.sum(W2 * y * y), b_max=RHO_S_MAX)
 
 
 def _fit_lobe(wi, wo, y, W, start, kind):
