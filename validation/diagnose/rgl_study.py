@@ -219,8 +219,8 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
 
     from glossrig.core.diagnose import load_fit
     from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD
-    from glossrig.core.diagnose.material_models import (LUMA, LobeFit, angle_arrays, fit_lobe, fit_weights,
-                                                        fresnel_profile)
+    from glossrig.core.diagnose.data import LUMA
+    from glossrig.core.diagnose.material_models import LobeFit, angle_arrays, fit_lobe, fit_weights, fresnel_profile
     from glossrig.core.diagnose.channels import fill_missing_channels
     from glossrig.core.diagnose.data import renormalise_table
     from glossrig.core.fitting.fit import fit_samples
