@@ -40,7 +40,6 @@ class BrdfData:
     lamps: dict                   # LED id -> lamp position (holder frame, mm)
     material_fixed: bool = False  # True when the material fit comes from another capture
     camera: tuple | None = None   # (K, distortion) of the camera calibration
-    reference_brdf: object = None  # callable(table) -> (n, 3) RGB BRDF of the reference (the calibration step, renormalise_table)
     #: the calibration with the reference's own BRDF applied to ``table`` (:func:`renormalise_table`); None: not applied
     reference_calibration: dict | None = None
 

@@ -252,8 +252,8 @@ def unexplained(m, frame_structure: dict | None = None, after=None) -> list[dict
     out = _brdf_entries(m, flexible, pred_all, vars_)
     if again:
         pa = flexible if after.name == "flexible_material" else after.prediction
-        pa_all = pred_all if after.name == "flexible_material" else after.prediction
-        out += _brdf_entries(m, pa, pa_all, {k: vars_[k] for k in names}, after=after.name, partial_angles=material)
+        # after.prediction: the cause fitted on all rows (the flexible one's equals pred_all, flexible_cause)
+        out += _brdf_entries(m, pa, after.prediction, {k: vars_[k] for k in names}, after=after.name, partial_angles=material)
     n_frame = len(frame_vars) if frame_structure else 0
     level = P_LEVEL / max(n_frame, 1)
     for k, key in (frame_vars.items() if frame_structure else ()):
