@@ -7,7 +7,8 @@ highlight is, and rises toward grazing angles elsewhere. The lobe's exponent is 
 unbounded the fit scaled that floor by ~1e81 into a grazing term, the lobe's peak (where no
 sample is) reached 1e84 1/sr, the red fit filled the luminance's missing red values with it
 and diagnose's held-out error became 2.4e66. Hand-built data of that kind here: every test
-below fails on the fit before RHO_S_MAX and LOBE_UNSEEN (rho_s 8.6e80 on the first one).
+below fails on the fit before RHO_S_MAX and LOBE_UNSEEN (helper B's run of the old code: rho_s
+8.6e80 on the channel fit, 1.2e80 on the luminance fit).
 """
 from __future__ import annotations
 

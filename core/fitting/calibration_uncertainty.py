@@ -356,17 +356,15 @@ def _refit(ang, y, sw, x0, weighting, clip, max_iter: int = 12, fp=None):
     of these rows) the model is eq. 4.79 averaged over each row's footprint, as ``glossrig
     fit`` fits it: for a lobe about as narrow as a footprint the point model describes
     other parameters altogether, and its sensitivity to the calibration is not the fit's."""
-    from glossrig.core.fitting.fit import ALPHA_MIN, RHO_S_MAX, peak_weight
+    from glossrig.core.fitting.fit import peak_weight, solver_bounds
     from glossrig.core.fitting.footprint_model import footprint_eval
-    from glossrig.core.models.ward import ALPHA_MAX, ward_geometry, ward_param_jacobian, ward_parts
+    from glossrig.core.models.ward import ward_geometry, ward_param_jacobian, ward_parts
 
     W = np.sqrt(sw) * peak_weight(ang["theta_in"], ang["phi_in"], ang["theta_out"], ang["phi_out"],
                                   ang.get("theta_d"), ang.get("phi_d"), mode=weighting)
     geo = ward_geometry(ang["theta_in"], ang["theta_out"], ang["theta_h"], ang["phi_h"])
     yc = y if clip is None else np.minimum(y, clip)
-    lb = np.array([0.0, 0.0, math.log(ALPHA_MIN), math.log(ALPHA_MIN), -np.inf])
-    # the fit's own bounds (fit.py: rho_s <= RHO_S_MAX, energy conservation): a draw's refit stays in them
-    ub = np.array([np.inf, RHO_S_MAX, math.log(ALPHA_MAX), math.log(ALPHA_MAX), np.inf])
+    lb, ub = solver_bounds()        # the fit's own bounds (rho_s <= RHO_S_MAX): a draw's refit stays in them
 
     def residual(x):
         if fp is not None:       # the footprint average (its Jacobian is evaluated anew below)

@@ -332,6 +332,14 @@ def _grid_lobes():
     return np.array(lobes)
 
 
+def solver_bounds() -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper bounds of the solver's parameters (rho_d, rho_s, ln alpha_x, ln alpha_y,
+    rotation): Table 4.2's, with ``ALPHA_MIN`` and ``RHO_S_MAX`` (module docstring). Every refit
+    of eq. 4.81 (this module's, the calibration draws') uses these."""
+    return (np.array([0.0, 0.0, math.log(ALPHA_MIN), math.log(ALPHA_MIN), -np.inf]),
+            np.array([np.inf, RHO_S_MAX, math.log(ALPHA_MAX), math.log(ALPHA_MAX), np.inf]))
+
+
 def _nnls2(uu, uv, vv, uz, vz, zz, b_max: float = math.inf):
     """Closed-form bounded least squares for two columns (vectorised over lobes):
     minimise zz - 2 a uz - 2 b vz + a^2 uu + 2 a b uv + b^2 vv over a >= 0, 0 <= b <= b_max.
@@ -669,8 +677,7 @@ def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mir
         cand += _distinct_starts(lobes, sol, n_starts)
     if not cand:
         raise InputError("no starting point: give starts or enable the grid")
-    lb = np.array([0.0, 0.0, math.log(ALPHA_MIN), math.log(ALPHA_MIN), -np.inf])
-    ub = np.array([np.inf, RHO_S_MAX, math.log(ALPHA_MAX), math.log(ALPHA_MAX), np.inf])
+    lb, ub = solver_bounds()
     yscale = max(float(np.max(np.abs(d.y))), 1e-12)
 
     def prepare(x):
