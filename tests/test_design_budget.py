@@ -51,23 +51,24 @@ def _ratio_sigma(nm, f, a, rig):
 
 
 def test_lamp_term_equals_the_spread_of_nonlinear_refits(rig):
-    """The calibration component with only the lamps (0.5 mm per axis) is the root sum of
-    squares of the parameter shifts that moving each lamp by 0.5 mm along each axis
-    causes; here those shifts come from full nonlinear least-squares refits, with the
-    pipeline's weights (eq. 4.82 over the ratio's noise), of data computed at the moved
-    lamp. A 0.5 mm move is ~0.1 degree of lamp direction, small against the lobe (2-3
-    degrees), so the linearisation holds to a few per cent: ratio in [0.9, 1.1]."""
+    """The calibration component with only the lamps (0.5 mm per axis, every lamp moved
+    alike: cu.LAMP_DRAW) is the root sum of squares over the axes of the parameter shifts
+    that moving every lamp by 0.5 mm along that axis causes; here those shifts come from
+    full nonlinear least-squares refits, with the pipeline's weights (eq. 4.82 over the
+    ratio's noise), of data computed at the moved lamps. A 0.5 mm move is ~0.1 degree of
+    lamp direction, small against the lobe (2-3 degrees), so the linearisation holds to a
+    few per cent: ratio in [0.9, 1.1]."""
     b = EB.design_budget(rig, [("s", P)], rotations=ROTS, led_ids=LEDS, scale=SCALE, noise="relative:0.03",
                          fisher_rows=ROWS, lamp_std_mm=0.5, **ONLY)["s"]
     blocks, nm = _blocks(rig, "relative:0.03")
     x0 = np.array([getattr(P, k) for k in fi.PARAMS])
 
-    def refit(moved_led, delta):
+    def refit(delta):
         def fun(x):
             p = WardParams(*x)
             out = []
-            for i, lamp, sub, a, w, m in blocks:
-                am = cov.direction_angles(sub, lamp + delta, half=True) if i == moved_led else a
+            for _i, lamp, sub, a, w, m in blocks:
+                am = cov.direction_angles(sub, lamp + delta, half=True)
                 for r in ROTS:
                     y = _ward(am, r, P)[0]
                     f = _ward(a, r, p)[0]
@@ -77,9 +78,8 @@ def test_lamp_term_equals_the_spread_of_nonlinear_refits(rig):
         return least_squares(fun, x0, x_scale=np.abs(x0) + 1e-3, xtol=1e-14, ftol=1e-14, gtol=1e-14).x - x0
 
     var = np.zeros(5)
-    for i in LEDS:
-        for e in np.eye(3):
-            var += refit(i, 0.5 * e) ** 2
+    for e in np.eye(3):
+        var += refit(0.5 * e) ** 2
     u = np.sqrt(var)
     for k, name in enumerate(fi.PARAMS):
         got = b["components"]["calibration"][name]
@@ -232,7 +232,7 @@ def test_design_errors_cli_states_a_usable_budget(tmp_path, capsys, rig):
 
 def test_intrinsics_term_equals_the_spread_of_nonlinear_refits(rig):
     """With a camera calibration's views the calibration component holds the intrinsics
-    drawn as ``glossrig fit`` draws them (EB.IntrinsicsDraws). Its nominal geometry is the
+    drawn as ``glossrig fit`` draws them (EB.CalibrationDraws). Its nominal geometry is the
     design's own (the pixels' rays cast again: the same angles to 1e-6 degree), and its
     spread over the draws (Gauss-Newton refits) equals that of this test's own nonlinear
     refits (SciPy's trust region, residuals assembled here with the pipeline's weights) of
@@ -257,7 +257,7 @@ def test_intrinsics_term_equals_the_spread_of_nonlinear_refits(rig):
     assert "12 draws" in b["stated"]["intrinsics"]
     blocks, nm = _blocks(rig, "relative:0.03")
     px = cov.pixel_geometry(rig, SCALE)
-    intr = EB.IntrinsicsDraws(rig, px, cv, 12, 3)
+    intr = EB.CalibrationDraws(rig, px, cv, 12, 3)
     drawn_by_led = {}
     for i, _lamp, sub, a, _w, _m in blocks:
         nominal, drawn = intr.angles(i)

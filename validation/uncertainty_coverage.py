@@ -134,14 +134,18 @@ def calibration_errors(cal_dir: Path, truth_capture: Path) -> dict:
 def stale(previous: dict, work: Path) -> bool:
     """Whether a finished measurement's calibration component was computed with lamp
     uncertainties other than its round's lamps.json states now (lamps.json remade, e.g.
-    by a ``calibrate lamps`` that states each lamp's own uncertainty): its component is
-    computed again (:func:`measure` with ``previous``)."""
-    from glossrig.core.fitting.calibration_uncertainty import lamp_std
+    by a ``calibrate lamps`` that states each lamp's own uncertainty) or with another
+    model of the lamps' draws (:data:`~glossrig.core.fitting.calibration_uncertainty.LAMP_DRAW`;
+    a result without one was drawn independently per LED): its component is computed
+    again (:func:`measure` with ``previous``)."""
+    from glossrig.core.fitting.calibration_uncertainty import LAMP_DRAW, lamp_std
 
     doc = json.loads((work / f"cal_round{previous['spec']['round']}" / "lamps.json").read_text())
     now = lamp_std(doc)
-    used = previous.get("calibration_meta", {}).get("stated", {}).get("lamps_std_mm") or {}
-    return set(used) != {str(k) for k in now} or any(not np.allclose(used[str(k)], v) for k, v in now.items())
+    stated = previous.get("calibration_meta", {}).get("stated", {})
+    used = stated.get("lamps_std_mm") or {}
+    return (stated.get("lamps_draw") != LAMP_DRAW or set(used) != {str(k) for k in now}
+            or any(not np.allclose(used[str(k)], v) for k, v in now.items()))
 
 
 def measure(spec: dict, work: Path, leds: str, rotations: str, draws: int, previous: dict | None = None) -> dict:

@@ -31,14 +31,21 @@ component's variance:
   4.3.3, fig. 4.12) after neighbour correction and patch normalisation (eq. 4.32-4.50),
   :data:`GAIN_REL` per block; the misfit ``glossrig fit`` measures with its cluster-robust
   sandwich over the same blocks;
-* ``calibration`` - each LED's position, :data:`~glossrig.core.calibration.lamps.LAMP_STD_MM`
-  per holder axis (``df = f`` at the moved lamp ``- f``, every rotation of that LED);
+* ``calibration`` - the LEDs' positions, :data:`~glossrig.core.calibration.lamps.LAMP_STD_MM`
+  per holder axis, moved together: a calibration's lamp errors are common to its LEDs, as
+  the fit draws them (:data:`glossrig.core.fitting.calibration_uncertainty.LAMP_DRAW`).
+  Without camera views linearised (``df = f`` at the moved lamps ``- f``, every LED and
+  rotation summed before squaring); with them drawn in :class:`CalibrationDraws` and
+  refitted, because for a lobe narrower than the lamp error's angle the response is not
+  linear (brushed_original at scale 0.1, 4 LEDs: the one-sided difference gave alpha_y
+  0.5 % at 0.5 mm and 2.0 % at 1 mm, four times for twice the shift, where the fit's
+  refitted draws of round 1's lamps gave 4.2 %);
   the sample's pose against camera and lamps per rotation, :data:`POSE_ROT_DEG` about
   each holder axis and :data:`POSE_T_MM` along each at scale 0.25, in proportion to the
   pixel size at other scales (the sample's points and normals moved rigidly; these figures
   carry the intrinsics' error as far as a rigid move can); or, given a camera calibration's
   views (``camera_views``), the intrinsics drawn as ``glossrig fit`` draws them
-  (:class:`IntrinsicsDraws`, GUM-S1: the pixels' rays cast again through each drawn camera
+  (:class:`CalibrationDraws`, GUM-S1: the pixels' rays cast again through each drawn camera
   with the poses re-solved from the markers) and the poses' own noise
   (:data:`POSE_NOISE_ROT_DEG`, :data:`POSE_NOISE_T_MM`); the reference's albedo
   (:data:`~glossrig.core.fitting.calibration_uncertainty.ALBEDO_U_REL` of rho_d and rho_s)
@@ -112,9 +119,9 @@ _ANGLES = ("theta_in", "phi_in", "theta_out", "phi_out", "theta_h", "phi_h")
 INTRINSICS_ROWS = 20_000
 
 
-class IntrinsicsDraws:
-    """The calibration's intrinsics drawn as ``glossrig fit``'s calibration component draws
-    them (:mod:`glossrig.core.fitting.calibration_uncertainty`, GUM-S1): each draw re-runs the
+class CalibrationDraws:
+    """The calibration's intrinsics and lamps drawn as ``glossrig fit``'s calibration component
+    draws them (:mod:`glossrig.core.fitting.calibration_uncertainty`, GUM-S1): each draw re-runs the
     camera calibration on its views' corners moved by noise of its reprojection RMS
     (:func:`~glossrig.core.fitting.calibration_uncertainty.camera_draw`, intrinsics and
     distortion together), re-solves the holder's and cylinder's marker PnP with the drawn
@@ -123,11 +130,13 @@ class IntrinsicsDraws:
     The pipeline then takes each pixel's value for the angles of the drawn geometry: the
     data are the nominal angles' values, the model is evaluated at the drawn ones. This is
     the intrinsics' effect that the poses do not absorb (a rigid pose figure cannot carry
-    it; validation/uncertainty_coverage.md, section 3). ``views``: a
+    it; validation/uncertainty_coverage.md, section 3). Each draw also moves every lamp by
+    one shift of ``lamp_std_mm`` per holder axis (a normal draw of its own random stream,
+    so the intrinsics' draws do not depend on it). ``views``: a
     :class:`~glossrig.core.fitting.calibration_uncertainty.CameraViews` of a calibration at
     the design's image size."""
 
-    def __init__(self, rig, px: cov.PixelGeometry, views, n_draws: int, seed: int):
+    def __init__(self, rig, px: cov.PixelGeometry, views, n_draws: int, seed: int, lamp_std_mm: float = 0.0):
         import cv2
 
         from glossrig.core.calibration.markers import cylinder_marker_corners, holder_marker_corners
@@ -150,6 +159,8 @@ class IntrinsicsDraws:
                                         camera_views=views)
         rng = np.random.default_rng(seed)
         self.draws = [cu.draw_calibration(self.cal, rng, ("intrinsics",))[:3] for _ in range(n_draws)]
+        # the lamps: one shift of every LED per draw (cu.LAMP_DRAW), from a stream of its own
+        self.lamp_shifts = float(lamp_std_mm) * np.random.default_rng([seed, 1]).standard_normal((n_draws, 3))
         self.rig, self.px = rig, px
         # pixel centres as row_angles casts them (u + 0.5: a Bayer block's corner there)
         self.u, self.v = px.u.astype(float) - 0.5, px.v.astype(float) - 0.5
@@ -159,7 +170,8 @@ class IntrinsicsDraws:
         design for ``led``; NaN where a ray misses or a direction is below the horizon."""
         from glossrig.core.fitting import calibration_uncertainty as cu
 
-        lamps = {int(led): np.asarray(self.rig.led(led).position, float)}
+        lamp = np.asarray(self.rig.led(led).position, float)
+        lamps = {int(led): lamp}
         n = self.u.size
         args = (self.u, self.v, np.full(n, int(led)), np.zeros(n))
 
@@ -168,7 +180,8 @@ class IntrinsicsDraws:
             return {k: np.where(ok, a[k], np.nan) for k in _ANGLES}
 
         nominal = deg(cu.row_angles(self.cal, *args, lamps=lamps))
-        drawn = [deg(cu.row_angles(self.cal, *args, K=K, dist=d, poses=p, lamps=lamps)) for K, d, p in self.draws]
+        drawn = [deg(cu.row_angles(self.cal, *args, K=K, dist=d, poses=p, lamps={int(led): lamp + shift}))
+                 for (K, d, p), shift in zip(self.draws, self.lamp_shifts)]
         return nominal, drawn
 
 
@@ -262,7 +275,7 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
     rot_rad = math.radians(pose_rot_deg)
     moves = [(f"pose_rot{k}", rotation_from_vector(rot_rad * e), None) for k, e in enumerate(np.eye(3))] + \
             [(f"pose_t{k}", None, pose_t_mm * e) for k, e in enumerate(np.eye(3))]
-    intr = IntrinsicsDraws(rig, px, camera_views, intrinsics_draws, seed) if camera_views is not None else None
+    intr = CalibrationDraws(rig, px, camera_views, intrinsics_draws, seed, lamp_std) if camera_views is not None else None
     acc = {label: _Sums() for label, _ in materials}
     for i in led_ids:
         lamp = np.asarray(rig.led(i).position, float)
@@ -277,7 +290,8 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
             a = {k: v[rows] for k, v in a_all.items()}
             # eq. 4.82's weight depends on differences of the angles: the same at every rotation
             m = peak_weight(*(np.radians(a[k]) for k in ("theta_in", "phi_in", "theta_out", "phi_out")))
-            moved_lamps = [cov.direction_angles(sub, lamp + lamp_std * e, half=True) for e in np.eye(3)]
+            moved_lamps = [cov.direction_angles(sub, lamp + lamp_std * e, half=True) for e in np.eye(3)] \
+                if intr is None else []
             moved_poses = [(name, cov.direction_angles(_moved(sub, R, t), lamp, half=True)) for name, R, t in moves]
             add = _accumulator(s.b)
             # the noise model at these rows, evaluated once: the reference's (every rotation alike)
@@ -296,8 +310,8 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
                 JW = J * (w * mult ** 2)[:, None]
                 s.n_rows += int(round(w.sum()))
                 add(f"gain_{i}_{r:g}", "model", gain_rel, JW.T @ f)
-                for k, am in enumerate(moved_lamps):
-                    add(f"lamp_{i}_{k}", "calibration", 1.0, JW.T @ (_ward(am, r, p)[0] - f))
+                for k, am in enumerate(moved_lamps if intr is None else []):  # else drawn with the camera
+                    add(f"lamp_{k}", "calibration", 1.0, JW.T @ (_ward(am, r, p)[0] - f))   # every lamp moved alike
                 for name, am in moved_poses:
                     add(f"{name}_{r:g}", "calibration", 1.0, JW.T @ (_ward(am, r, p)[0] - f))
                 if a_intr is not None:
@@ -364,7 +378,7 @@ class _Sums:
         # the reference's angular variation (module docstring): sum W^2 J' f g and W^2 J' f with
         # the rows' mean of g = 1 - cos theta, for theta_in and theta_out
         self.ang_fg, self.ang_f, self.ang_g, self.ang_w = np.zeros((2, 5)), np.zeros(5), np.zeros(2), 0.0
-        # the intrinsics draws' rows (IntrinsicsDraws): [(nominal angles, values, weights, drawn angles per draw)]
+        # the intrinsics draws' rows (CalibrationDraws): [(nominal angles, values, weights, drawn angles per draw)]
         self.intr_rows: list[tuple] = []
 
     def add_intrinsics_rows(self, a_intr, rows, rotation: float, p: WardParams, table_weight) -> None:

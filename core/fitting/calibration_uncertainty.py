@@ -7,12 +7,23 @@ Every calibration stage states its uncertainty in the file it writes:
 * holder and cylinder poses - ``edge_fit.std_rot_deg`` / ``std_t_mm`` of
   :func:`glossrig.core.calibration.poses.calibrate_capture` (Gauss-Newton, noise only);
 * lamp positions - lamps.json's ``std_mm`` (per LED, per holder axis; a file without it
-  gets :data:`LAMP_STD_MM`, see :func:`lamp_std`);
+  gets :data:`LAMP_STD_MM`, see :func:`lamp_std`), drawn as **one shift common to every
+  LED** (:data:`LAMP_DRAW`): ``calibrate lamps`` finds every LED through the same camera
+  and cylinder pose, so a calibration's lamp errors are that geometry's and move all its
+  lamps alike. Measured on the coverage study's eight scale-0.1 twin calibrations
+  (validation/uncertainty_coverage.md, section 2): RMS over the calibrations of the mean
+  lamp error 0.58, 1.01, 0.39 mm (holder x, y, z) against a spread about that mean of
+  0.11, 0.20, 0.30 mm within a calibration, and stated 0.59, 0.84, 0.38 mm. Drawn
+  independently per LED (as before 2026-11-25) the errors of several LEDs partly cancel
+  in the fit: on brushed_original's scale-0.1 measurement of calibration round 1 the
+  calibrated lamps alone (the twin's true camera and poses) moved alpha_y by -8.4 % and
+  rho_s by -12 %, where the whole calibration component stated 3.0 % and 4.8 %;
 * reference albedo - a relative standard uncertainty of its level
   (:data:`ALBEDO_U_REL`) and of its angular variation (:data:`ALBEDO_ANGULAR_U_REL`).
 
 Propagation (GUM-S1, Monte Carlo over calibration draws): each draw perturbs the
-calibration within its stated uncertainty (independent normal draws) and recomputes,
+calibration within its stated uncertainty (normal draws, independent between the stages)
+and recomputes,
 for the existing samples, what changes:
 
 * the **angles**: the samples table keeps each row's pixel (``u, v``: the Bayer block's
@@ -75,6 +86,9 @@ from glossrig.core.errors import InputError
 
 PARAM_NAMES = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
 SOURCES = ("intrinsics", "poses", "lamps", "albedo")
+#: How the lamp positions are drawn (module docstring): one normal shift per draw, scaled by
+#: each LED's stated standard uncertainty, common to every LED.
+LAMP_DRAW = "one shift common to every LED, each LED's std_mm per holder axis"
 #: Per holder axis standard uncertainty (mm) of a lamp position whose file states none
 #: (0.5 mm; :func:`glossrig.core.calibration.lamps.calibrate_lamps` states each lamp's own).
 LAMP_STD_MM = _LAMP_STD_MM
@@ -331,8 +345,9 @@ def draw_calibration(cal: CalibrationInputs, rng, sources=SOURCES):
     for rot, rp in cal.poses.items():
         poses[rot] = tuple(_draw_pose(rp[k], K, dist, rng, "poses" in sources, intr)
                            for k in ("holder", "cylinder"))
-    lamps = {k: (p + cal.lamps_std[k] * rng.standard_normal(3)) if "lamps" in sources else p
-             for k, p in cal.lamps.items()}
+    # one shift for every lamp (LAMP_DRAW): a calibration's lamp errors are the geometry's, common to its LEDs
+    z = rng.standard_normal(3) if "lamps" in sources else np.zeros(3)
+    lamps = {k: p + cal.lamps_std[k] * z for k, p in cal.lamps.items()}
     if "albedo" in sources:
         scale = 1.0 + cal.albedo_u * rng.standard_normal()
         hi, ho = cal.angular_u * rng.standard_normal(2)
@@ -493,6 +508,7 @@ def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: in
                     "stated": {"intrinsics_reprojection_rms_px":
                                None if cal.camera_views is None else cal.camera_views.rms_px,
                                "lamps_std_mm": {str(k): s.tolist() for k, s in cal.lamps_std.items()},
+                               "lamps_draw": LAMP_DRAW,
                                "albedo_u_rel": cal.albedo_u, "albedo_angular_u_rel": cal.angular_u}}
     return out
 
