@@ -309,3 +309,44 @@ def test_logging_restores_after_a_verb(capsys):
     main(["fit", "/nonexistent/x.parquet", "-q"])
     capsys.readouterr()
     assert (log.level, log.propagate, list(log.handlers)) == before
+
+def test_logged_store_says_each_measured_unit_from_the_capture_s_own_units():
+    """Units are known as data (capture_units' (rotation, LED) pairs, by extract's unit_name):
+    every unit saved is said once with its count of the capture's units; other entries of the
+    work store (a unit's inputs, a stage) are not; a unit of a rotation with a fraction keeps it."""
+    from glossrig.cli.verbs.diagnose import logged_store
+    from glossrig.core.extraction.extract import unit_name
+    from glossrig.core.progress import Elapsed
+
+    class Store:
+        def __init__(self):
+            self.saved = []
+
+        def save(self, name, value):
+            self.saved.append(name)
+
+    lines = []
+    units = {"sample": [(0.0, 5), (0.0, 9), (-22.5, 5)], "reference": [(0.0, 5)]}
+    store = logged_store(Store, lines.append, Elapsed(), units)()
+    names = [unit_name("sample-", 0.0, 9), "sample-rot0-led9-inputs", "material_fit",
+             unit_name("reference-", 0.0, 5), unit_name("sample-", -22.5, 5)]
+    for n in names:
+        store.save(n, None)
+    assert store.saved == names                      # the store's own save still runs
+    assert [re.sub(r" \(\d+ s, CPU \d+ s\)$", "", s) for s in lines] == [
+        "measured sample LED 9 at rotation 0 (1 of 3)", "measured reference LED 5 at rotation 0 (1 of 1)",
+        "measured sample LED 5 at rotation -22.5 (2 of 3)"]
+    assert all(re.search(r" \(\d+ s, CPU \d+ s\)$", s) for s in lines)
+
+
+def test_elapsed_counts_wall_and_this_process_s_cpu():
+    from glossrig.core.progress import Elapsed
+
+    e = Elapsed()
+    t = time.process_time()
+    while time.process_time() - t < 0.3:            # busy: CPU time grows with wall time
+        pass
+    time.sleep(0.3)                                 # idle: wall time only
+    wall, cpu = e.seconds()
+    assert 0.6 <= wall and 0.3 <= cpu < wall
+    assert re.fullmatch(r"\d+ s, CPU \d+ s", str(e))

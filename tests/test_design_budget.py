@@ -288,3 +288,18 @@ def test_intrinsics_term_equals_the_spread_of_nonlinear_refits(rig):
         got = b["components"]["calibration"][name]
         assert sd[k] > 0 and got > 0
         assert 0.99 < got / sd[k] < 1.01, (name, got, sd[k])
+
+def test_sensor_only_noise_is_the_merge_s_own_and_the_led_term_adds_in_quadrature():
+    """The second figure is the HDR merge's sensor noise itself (what extract writes as a row's
+    variance), the first that and the LED fluctuation in quadrature. The values span the rig's
+    range and far below it: at f = 1e-170 1/sr the merge's relative error (~1e170, finite)
+    squared overflows, which the former sqrt(shot**2) (and sqrt(shot**2 + led**2)) turned into inf."""
+    nm = fi.HdrNoise.from_rig(load_rig(default_rig_path()), led_rel=0.02)
+    f = np.array([1e-170, 1e-6, 1e-2, 0.3, 3.0, 300.0])
+    cos_in, dist = np.full(f.shape, 0.8), np.full(f.shape, 300.0)
+    r, r0 = nm.relative_with_sensor_only(f, cos_in, dist)
+    sensor = nm.sensor_relative(nm.electron_rate(f, cos_in, dist))
+    assert np.all(np.isfinite(sensor[:-1])) and sensor[0] > 1e150
+    np.testing.assert_array_equal(r0, sensor)
+    np.testing.assert_array_equal(r, np.hypot(sensor, 0.02))
+    assert np.all(r0 <= r) and np.array_equal(nm.relative(f, cos_in, dist), r)

@@ -122,9 +122,11 @@ def test_ordered_results_keep_job_order_whatever_finishes_first():
 
 def test_a_terminated_pool_stops_a_running_job_at_once():
     """WorkerPool.terminate (diagnose's frame stage on an error in the caller): the running
-    60 s job is not waited for and no worker process is left behind."""
+    60 s job is not waited for, no worker process is left behind, and its future is settled
+    (a caller waiting on it does not hang) with the broken pool's error, not a result."""
     import multiprocessing
     import time
+    from concurrent.futures.process import BrokenProcessPool
 
     from glossrig.core.workers import process_pool
 
@@ -136,7 +138,7 @@ def test_a_terminated_pool_stops_a_running_job_at_once():
     t1 = time.monotonic()
     pool.terminate()
     assert time.monotonic() - t1 < 20 and not multiprocessing.active_children()
-    assert not fut.done() or fut.exception() is not None or fut.cancelled()
+    assert fut.done() and not fut.cancelled() and isinstance(fut.exception(timeout=0), BrokenProcessPool)
 
 
 def test_reference_units_follow_their_sample_units_by_the_lag():

@@ -188,7 +188,7 @@ def simulate_options(*args, rig: Path = RIG, extra=()) -> dict:
     verb's own parser; a bad argument is an InputError."""
     import argparse
 
-    from glossrig.cli.verbs.simulate import add_arguments
+    from glossrig.cli.verbs.simulate import add_arguments, parse_rotations
     from glossrig.core.rig import load_rig
     from glossrig.twin.simulate import sample_options, twin_effects
 
@@ -202,11 +202,7 @@ def simulate_options(*args, rig: Path = RIG, extra=()) -> dict:
     a = p.parse_args(argv)
     if a.target != "sample":
         raise InputError(f"glossrig simulate {' '.join(argv)}: not a sample capture")
-    try:
-        rotations = [float(x) for x in a.rotations.split(",") if x.strip()]
-    except ValueError:
-        raise InputError(f"--rotations: expected comma-separated degrees, got {a.rotations!r}") from None
-    return sample_options(load_rig(a.rig), a.material, a.leds, rotations, a.repeats, a.scale, a.seed,
+    return sample_options(load_rig(a.rig), a.material, a.leds, parse_rotations(a.rotations), a.repeats, a.scale, a.seed,
                           twin_effects(a.effects, a.ideal), a.spp)
 
 

@@ -72,28 +72,17 @@ def add_arguments(p) -> None:
     p.add_argument("--no-progress", action="store_true")
 
 
-class _Clock:
-    """Elapsed wall and CPU time since the verb started (the CPU of this process only: the worker
-    processes measuring the captures are not in it)."""
-
-    def __init__(self):
-        import time
-
-        self._time = time
-        self.t0, self.c0 = time.perf_counter(), time.process_time()
-
-    def __str__(self) -> str:
-        return f"{self._time.perf_counter() - self.t0:.0f} s, CPU {self._time.process_time() - self.c0:.0f} s"
-
-
-def logged_store(store_cls, say, clock, totals: dict):
+def logged_store(store_cls, say, elapsed, units: dict[str, list[tuple[float, int]]]):
     """A subclass of the work store ``store_cls`` that says each measured (LED, rotation) unit as it
-    is saved: ``say`` gets "measured sample LED 5 at rotation 0 (3 of 8) (41 s, CPU 6 s)" (units
-    named ``sample-rot0-led5``; ``totals``: units per capture). Progress lines for a run whose
-    stderr is not a terminal, where no bar is drawn."""
-    import re
+    is saved: ``say`` gets "measured sample LED 5 at rotation 0 (3 of 8) (41 s, CPU 6 s)".
+    ``units``: each capture's (rotation, LED) units (``{"sample": [...], "reference": [...]}``,
+    :func:`glossrig.core.extraction.extract.capture_units`), known by the names extract saves
+    them under (:func:`glossrig.core.extraction.extract.unit_name`); ``elapsed`` the time text
+    (:class:`glossrig.core.progress.Elapsed`). Progress lines for a run whose stderr is not a
+    terminal, where no bar is drawn."""
+    from glossrig.core.extraction.extract import unit_name
 
-    pat = re.compile(r"(sample|reference)-rot(-?[0-9.]+)-led([0-9]+)")
+    named = {unit_name(f"{kind}-", rot, led): (kind, rot, led) for kind, us in units.items() for rot, led in us}
 
     class Logged(store_cls):
         def __init__(self, *a, **k):
@@ -102,10 +91,10 @@ def logged_store(store_cls, say, clock, totals: dict):
 
         def save(self, name, value):
             super().save(name, value)
-            m = pat.fullmatch(name)
-            if m:
-                k = self.done[m[1]] = self.done.get(m[1], 0) + 1
-                say(f"measured {m[1]} LED {m[3]} at rotation {m[2]} ({k} of {totals.get(m[1], '?')}) ({clock})")
+            if name in named:
+                kind, rot, led = named[name]
+                k = self.done[kind] = self.done.get(kind, 0) + 1
+                say(f"measured {kind} LED {led} at rotation {rot:g} ({k} of {len(units[kind])}) ({elapsed})")
     return Logged
 
 
@@ -115,7 +104,7 @@ def run(args) -> int:
     from glossrig.core.capture import load_manifest
     from glossrig.core.checkpoint import WorkStore, work_folder_for
     from glossrig.core.extraction.extract import capture_units
-    from glossrig.core.progress import progress_enabled
+    from glossrig.core.progress import Elapsed, progress_enabled
     from glossrig.core.diagnose import diagnose
     from glossrig.core.extraction.extract import measurement_fingerprint
     from glossrig.core.calibration.intrinsics import load_camera
@@ -133,15 +122,15 @@ def run(args) -> int:
     fp = measurement_fingerprint(args.sample, args.reference, load_camera(args.camera), load_lamps(args.lamps),
                                  files=extra, estimator="ml", albedo=args.albedo, fit_given=bool(args.fit))
     say = (lambda *a: None) if args.no_progress else _log.info
-    clock = _Clock()
+    elapsed = Elapsed()
     store_cls = WorkStore
     if not args.no_progress and not progress_enabled():
         # no bar on a pipe or a log file: one line per measured LED instead of minutes of silence
-        totals = {"sample": len(capture_units(load_manifest(args.sample))),
-                  "reference": len(capture_units(load_manifest(args.reference)))}
-        say(f"measuring the sample ({totals['sample']} LED x rotation units) and the reference "
-            f"({totals['reference']})")
-        store_cls = logged_store(WorkStore, say, clock, totals)
+        units = {"sample": capture_units(load_manifest(args.sample)),
+                 "reference": capture_units(load_manifest(args.reference))}
+        say(f"measuring the sample ({len(units['sample'])} LED x rotation units) and the reference "
+            f"({len(units['reference'])})")
+        store_cls = logged_store(WorkStore, say, elapsed, units)
     store = store_cls(work_folder_for(args.out), fp, resume=getattr(args, "resume", False), log=say)
     rep = diagnose(args.sample, args.reference, args.camera, args.lamps, args.out, fit=args.fit,
                    albedo=args.albedo, progress=not args.no_progress, log=say, reference_brdf=ref, store=store)

@@ -80,16 +80,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "and linear/*.exr are removed first; a folder holding anything else is still refused")
 
 
+def parse_rotations(text: str) -> list[float]:
+    """``--rotations``: the comma-separated sample rotations (degrees), at least one."""
+    from glossrig.core.errors import InputError
+
+    try:
+        rotations = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise InputError(f"--rotations: expected comma-separated degrees, got {text!r}") from None
+    if not rotations:
+        raise InputError("--rotations: empty")
+    return rotations
+
+
 def run(args) -> int:
     from glossrig.core.errors import InputError
     from glossrig.twin.simulate import simulate
 
-    try:
-        rotations = [float(x) for x in args.rotations.split(",") if x.strip()]
-    except ValueError:
-        raise InputError(f"--rotations: expected comma-separated degrees, got {args.rotations!r}") from None
-    if not rotations:
-        raise InputError("--rotations: empty")
+    rotations = parse_rotations(args.rotations)
     resume = getattr(args, "resume", False)
     if resume and args.force:
         raise InputError("--resume completes the capture in --out, --force replaces it: give one of them")

@@ -145,9 +145,10 @@ class HdrNoise:
     def relative_with_sensor_only(self, f, cos_in, dist_mm) -> tuple[np.ndarray, np.ndarray]:
         """(:meth:`relative`, the same without the per-pixel LED term) from one evaluation of the
         HDR merge: the second is what ``glossrig extract`` writes as a row's variance (the merge's
-        sensor noise), and so what a fit weights by."""
-        shot = self.sensor_relative(self.electron_rate(f, cos_in, dist_mm))
-        return np.sqrt(shot ** 2 + self.led_rel ** 2), np.sqrt(shot ** 2)
+        sensor noise, :meth:`sensor_relative`, which is >= 0 or inf), and so what a fit weights by;
+        the first adds the independent LED fluctuation in quadrature."""
+        sensor = self.sensor_relative(self.electron_rate(f, cos_in, dist_mm))
+        return np.hypot(sensor, self.led_rel), sensor
 
     def sigma(self, f, cos_in, dist_mm) -> np.ndarray:
         return self.relative(f, cos_in, dist_mm) * np.asarray(f, float)

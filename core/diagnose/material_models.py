@@ -200,25 +200,12 @@ def fit_weights(t) -> np.ndarray:
 
 
 def _linear(L, y, W):
-    """Bounded weighted least squares of y on [1/pi, L]: (rho_d, rho_s), rho_d >= 0 and
-    0 <= rho_s <= :data:`glossrig.core.fitting.fit.RHO_S_MAX` (energy conservation, thesis
-    eq. 2.4: every lobe here reflects about rho_s of the light, a microfacet lobe at most
-    rho_s). Unbounded, a lobe that is ~0 on every row (its peak where no row is) takes any
-    amplitude: the column's far tail (for Ward's lobe the floor of the capped exponent,
-    ``glossrig.core.models.ward.EXPONENT_CAP``) is then fitted with rho_s ~ 1e80. Bounded, such
-    a lobe is still unseen by the data (below ``LOBE_UNSEEN`` of the largest datum on every
-    weighted row) and any rho_s fits as well: it is then 0, as :func:`glossrig.core.fitting.fit.fit_ward`
-    reports it, so that the lobe's peak is never extrapolated where no row is."""
-    from glossrig.core.fitting.fit import LOBE_UNSEEN, RHO_S_MAX, _nnls2
+    """(rho_d, rho_s) of the lobe column ``L``: :func:`glossrig.core.fitting.fit.lobe_albedos`
+    (weighted least squares of y on [1/pi, L], rho_d >= 0, 0 <= rho_s <= RHO_S_MAX by energy
+    conservation, thesis eq. 2.4; a lobe the data do not see is none)."""
+    from glossrig.core.fitting.fit import lobe_albedos
 
-    L, y, W = np.asarray(L, float), np.asarray(y, float), np.asarray(W, float)
-    W2 = W * W
-    a, b, _ = _nnls2(np.sum(W2) / np.pi ** 2, np.sum(W2 * L) / np.pi, np.sum(W2 * L * L),
-                     np.sum(W2 * y) / np.pi, np.sum(W2 * y * L), np.sum(W2 * y * y), b_max=RHO_S_MAX)
-    seen = W2 > 0
-    if b > 0 and seen.any() and b * np.max(np.abs(L[seen])) <= LOBE_UNSEEN * np.max(np.abs(y[seen])):
-        a, b = max(np.pi * np.sum(W2 * y) / np.sum(W2), 0.0), 0.0
-    return float(a), float(b)
+    return lobe_albedos(L, y, W)[:2]
 
 
 def fit_lobe(a: dict, y, W, kind: str = "ggx", start=(0.1, 0.1, 0.0), n=None, fit_n: bool = False,

@@ -373,6 +373,38 @@ def _nnls2(uu, uv, vv, uz, vz, zz, b_max: float = math.inf):
     return A, B, C
 
 
+def lobe_albedos(L, y, W, *, b_max: float = RHO_S_MAX, unseen_rule: bool = True) -> tuple[float, float, float]:
+    """The albedos of a fixed lobe: ``(rho_d, rho_s, cost)`` minimising
+    ``sum (W (y - rho_d / pi - rho_s L))^2`` over ``rho_d >= 0``, ``0 <= rho_s <= b_max``.
+
+    Thesis eq. 4.79 (and every stock or extended lobe of the same form, ``rho_d / pi + rho_s
+    L``) is linear in the two albedos, so for a fixed lobe shape ``L`` (the lobe of unit
+    ``rho_s`` at each row) the weighted least squares of eq. 4.81 over them is a two-column
+    bounded problem, solved in closed form by :func:`_nnls2`. The upper bound is energy
+    conservation (thesis eq. 2.4, :data:`RHO_S_MAX`): a lobe of unit ``rho_s`` reflects about
+    (a microfacet lobe at most) all the light; unbounded, a lobe that is ~0 on every row (its
+    peak where no row is) takes any amplitude, and its far tail (for Ward's lobe the floor of
+    the capped exponent, :data:`glossrig.core.models.ward.EXPONENT_CAP`) was fitted with
+    ``rho_s ~ 1e80``. Bounded, such a lobe is still unseen by the data (``rho_s L`` below
+    :data:`LOBE_UNSEEN` of the largest datum on every row of positive weight) and any ``rho_s``
+    fits about as well: it is then reported as none (``rho_s = 0``, as :func:`fit_ward` does),
+    so that the lobe's peak is never extrapolated where no row is, and ``rho_d`` is re-solved
+    alone (the weighted mean of ``pi y``, clipped at 0), with its cost. Rows of zero weight
+    take no part (their ``y`` must still be finite). ``unseen_rule=False``: the bounded
+    solve alone, a continuous function of ``L`` (the inner solve of a variable projection,
+    whose outer solver differentiates the residual numerically; the rule's jump, up to
+    LOBE_UNSEEN of the data, would read as a slope there)."""
+    L, y, W = np.asarray(L, float), np.asarray(y, float), np.asarray(W, float)
+    W2 = W * W
+    uu, uz, zz = np.sum(W2) / np.pi ** 2, np.sum(W2 * y) / np.pi, np.sum(W2 * y * y)
+    a, b, cost = _nnls2(uu, np.sum(W2 * L) / np.pi, np.sum(W2 * L * L), uz, np.sum(W2 * y * L), zz, b_max=b_max)
+    seen = W2 > 0
+    if unseen_rule and b > 0 and seen.any() and b * np.max(np.abs(L[seen])) <= LOBE_UNSEEN * np.max(np.abs(y[seen])):
+        a, b = max(np.pi * np.sum(W2 * y) / np.sum(W2), 0.0), 0.0
+        cost = zz - 2 * a * uz + a * a * uu
+    return float(a), float(b), float(cost)
+
+
 def _grid_search(d: _Data, keep=None):
     """Cost of the best non-negative (rho_d, rho_s) for every grid lobe.
 
@@ -992,7 +1024,8 @@ def channel_values(df, channel: str) -> np.ndarray:
 def shared_lobe_albedos(df, lobe: WardParams, *, weighting: str = "mirror", clip: float | None = None,
                         sample_weight=None, footprint: SampleFootprint | None = None) -> dict:
     """Per-channel non-negative ``rho_d, rho_s`` for a fixed lobe (eq. 4.81 is
-    linear in them). Rows the clip level censors are left out, and so are the rows a
+    linear in them; :func:`lobe_albedos`: ``rho_s <= RHO_S_MAX``, a lobe the channel's
+    data do not see is none). Rows the clip level censors are left out, and so are the rows a
     channel is missing in (NaN, :mod:`glossrig.core.samples`) from that channel's.
     ``sample_weight``: one weight per row, or ``{channel: weights}``. With ``footprint``
     (one per row) the lobe is averaged over each channel's footprint, as fitted."""
@@ -1019,11 +1052,9 @@ def shared_lobe_albedos(df, lobe: WardParams, *, weighting: str = "mirror", clip
         y = np.where(Wc > 0, y, 0.0)
         if clip is not None:
             Wc = Wc * (y < clip)
-        W2 = Wc * Wc
-        A, Bs, _ = _nnls2(np.sum(W2) / np.pi ** 2, np.sum(W2 * B) / np.pi, np.sum(W2 * B * B),
-                          np.sum(W2 * y) / np.pi, np.sum(W2 * y * B), np.sum(W2 * y * y), b_max=RHO_S_MAX)
-        out["rho_d"].append(float(A))
-        out["rho_s"].append(float(Bs))
+        A, Bs, _ = lobe_albedos(B, y, Wc)
+        out["rho_d"].append(A)
+        out["rho_s"].append(Bs)
     return out
 
 

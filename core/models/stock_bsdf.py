@@ -246,27 +246,21 @@ def _weights(df, weighting: str, use_weight_column: bool) -> np.ndarray:
     return W
 
 
-def _albedos(B, y, W):
-    """(rho_d, rho_s, cost) minimising sum (W (y - rho_d/pi - rho_s B))^2 with rho_d >= 0 and
-    0 <= rho_s <= :data:`~glossrig.core.fitting.fit.RHO_S_MAX`: a microfacet lobe of unit rho_s
-    (D G / (4 cos cos) with Smith's G) reflects at most all the light, so the Ward fit's
-    energy bound holds here too; without it a lobe whose peak lies between the samples could
-    scale its tail into a term of any size (glossrig.core.fitting.fit, RHO_S_MAX)."""
-    from glossrig.core.fitting.fit import RHO_S_MAX, _nnls2
-
-    W2 = W * W
-    return _nnls2(np.sum(W2) / np.pi ** 2, np.sum(W2 * B) / np.pi, np.sum(W2 * B * B),
-                  np.sum(W2 * y) / np.pi, np.sum(W2 * y * B), np.sum(W2 * y * y), b_max=RHO_S_MAX)
-
-
 def _fit_lobe(wi, wo, y, W, start, kind):
     """Variable projection (Golub & Pereyra 1973): SciPy's bounded trust-region least
-    squares over (ln alpha_u, ln alpha_v, rotation), the albedos in closed form."""
+    squares over (ln alpha_u, ln alpha_v, rotation), the albedos in closed form
+    (:func:`glossrig.core.fitting.fit.lobe_albedos`, without its unseen-lobe rule: the
+    residual must be continuous in the shape for the solver's finite differences; the rule
+    applies to the albedos reported, :func:`fit_stock`). Its bound ``rho_s <= RHO_S_MAX``
+    holds here too: a microfacet lobe of unit ``rho_s`` (D G / (4 cos cos) with Smith's G)
+    reflects at most all the light."""
     from scipy.optimize import least_squares
+
+    from glossrig.core.fitting.fit import lobe_albedos
 
     def resid(x):
         B = specular_basis(wi, wo, math.exp(x[0]), math.exp(x[1]), x[2], kind)
-        a, b, _ = _albedos(B, y, W)
+        a, b, _ = lobe_albedos(B, y, W, unseen_rule=False)
         return W * (y - a / np.pi - b * B)
 
     lo = [math.log(STOCK_ALPHA_MIN), math.log(STOCK_ALPHA_MIN), -np.inf]
@@ -293,7 +287,7 @@ def fit_stock(df, ward, *, weighting: str = "mirror", use_weight_column: bool = 
     ``use_weight_column`` and ``clip`` as the Ward fit's options (eq. 4.82 weight;
     rows whose value reaches ``clip`` are left out, as for the shared-lobe albedos).
     Each of ``distributions`` is fitted; the lowest weighted residual wins."""
-    from glossrig.core.fitting.fit import _residual_stats, channel_values
+    from glossrig.core.fitting.fit import _residual_stats, channel_values, lobe_albedos
     from glossrig.core.models.ward import ward_from_angles
 
     if len(df) == 0:
@@ -320,7 +314,7 @@ def fit_stock(df, ward, *, weighting: str = "mirror", use_weight_column: bool = 
         x = _fit_lobe(wi, wo, y, W, starts, kind)
         au, av, rot = math.exp(x[0]), math.exp(x[1]), float(x[2])
         B = specular_basis(wi_k, wo_k, au, av, rot, kind)
-        a, b, _ = _albedos(B, y_k, W_k)
+        a, b, _ = lobe_albedos(B, y_k, W_k)
         f = a / np.pi + b * B
         stats = _residual_stats(y_k, f, W_k, None, False)
         fits[kind] = (au, av, rot, float(a), float(b), B, stats)
@@ -334,9 +328,9 @@ def fit_stock(df, ward, *, weighting: str = "mirror", use_weight_column: bool = 
         yc = np.asarray(df[c], float)
         kc = keep & np.isfinite(yc)
         Bc = specular_basis(wi_all[kc], wo_all[kc], au, av, rot, kind)
-        ac, bc, _ = _albedos(Bc, yc[kc], W_all[kc])
-        rgb["rho_d"].append(float(ac))
-        rgb["rho_s"].append(float(bc))
+        ac, bc, _ = lobe_albedos(Bc, yc[kc], W_all[kc])
+        rgb["rho_d"].append(ac)
+        rgb["rho_s"].append(bc)
     fw = ward_from_angles(np.asarray(df["theta_in"], float)[idx], np.asarray(df["theta_out"], float)[idx],
                           np.asarray(df["theta_h"], float)[idx], np.asarray(df["phi_h"], float)[idx], ward)
     ward_stats = _residual_stats(y_k, fw, W_k, None, False)
