@@ -6,7 +6,9 @@ statistics), computes residuals in BRDF space and in frame/pixel space, fits
 each named cause of :mod:`.catalogue` and :mod:`.frames` on training folds,
 scores it on held-out folds (split by LED or by exposure, never by random
 pixels) and names the winner, or "none" when no cause beats the stated
-threshold. :mod:`.report` writes report.json and report.md. With the reference's own BRDF
+threshold. The BRDF-space ``stray_light`` cause is judged by the frames' dark pixels
+(:mod:`.stray_light`: refuted where they are darker than its veil, named through their
+frame-space signature where they carry it). :mod:`.report` writes report.json and report.md. With the reference's own BRDF
 the measured table is first renormalised with it - a calibration step that is applied and
 reported (``meta.reference_calibration``), not a cause (issue 14, item 4).
 """
@@ -25,6 +27,7 @@ from glossrig.core.diagnose.data import load_brdf
 from glossrig.core.diagnose.frames import FrameStage, frame_stage
 from glossrig.core.diagnose.report import verdict, write_report
 from glossrig.core.diagnose.residuals import brdf_structure
+from glossrig.core.diagnose.stray_light import apply_frame_evidence, frame_evidence
 from glossrig.core.diagnose.unexplained import retested_cause, unexplained
 
 #: base-model median |relative error| above which a given fit cannot be this capture's material
@@ -126,12 +129,19 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
         f"(noise alone {m.calibration.get('heldout_error_noise_only', float('nan')):.3g}); fitting the BRDF-space causes")
     # the frame-space stage (the raws, the sensor and LED causes) runs in a worker process beside the
     # BRDF-space causes: on a 2-core machine the two share the cores instead of taking turns
-    bg = FrameStage(sample_dir, data.measured) if store is None or not store.has("frame_causes") else None
+    bg = FrameStage(sample_dir, data.measured) if store is None or not store.has("frame_stage") else None
     with bg if bg is not None else contextlib.nullcontext():
         causes = stage("brdf_causes", lambda: brdf_causes(m, log=log))
         log(f"BRDF-space causes done{'; waiting for the frame-space causes' if bg is not None else ''} ({took()})")
-        fcauses, fstructure = stage("frame_causes", lambda: bg.result() if bg is not None
-                                    else frame_stage(sample_dir, data.measured, log=log))
+        fcauses, fstructure, veil = stage("frame_stage", lambda: bg.result() if bg is not None
+                                          else frame_stage(sample_dir, data.measured, log=log))
+    # stray light judged by the frames' dark pixels: refuted where they are darker than its veil,
+    # named through its frame-space signature where they carry it (stray_light.py)
+    stray = frame_evidence(veil, t, data.lamps)
+    with one_blas_thread():
+        apply_frame_evidence(m, causes, stray)
+    if stray is not None:
+        log(f"stray light in the frames' dark pixels: s = {stray['s']:.3g} +- {stray['se']:.2g}")
     causes = causes + fcauses
     log(f"frame-space causes done ({took()})")
     structure = {"brdf": brdf_structure(m), "frames": fstructure}
@@ -140,6 +150,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
         base.setdefault(c.space, c.base_error)
     meta = {"sample": str(sample_dir), "reference": str(reference_dir), "camera": str(camera), "lamps": str(lamps),
             "fit": str(fit) if fit else None, "material": w.as_dict(), "material_from_capture": fit is None,
+            "stray_light_frames": stray,
             "n_brdf_rows": int(len(m.rows)), "leds": sorted(int(x) for x in np.unique(t.led)),
             "missing_channels": m.channel_fill, "reference_calibration": cal or {"applied": False},
             "splits": {"brdf": "leave one LED out (per-LED parameters or one LED: the two halves of the pixel rows)",

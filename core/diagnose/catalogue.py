@@ -81,6 +81,12 @@ class CauseResult:
     magnitude: float | None = None  # in the twin catalogue's unit, when it maps onto one
     blocked_by: str | None = None   # the material model that explains as much (instrument causes)
     vs_material: float | None = None  # held-out gain over the best material model (flexible.material_first)
+    #: why the frames refute the cause (stray light whose s exceeds the dark pixels' bound,
+    #: :mod:`.stray_light`); a refuted cause is not significant
+    refuted: str | None = None
+    #: the cause carries a frame-space signature no material can produce (stray light lighting the
+    #: pixels that see nothing, :mod:`.stray_light`): it is eligible whatever the material-first rule says
+    frame_signature: bool = False
     #: the extended model fitted on all rows, predicted for every row (BRDF space; not written out):
     #: what remains after it is tested for structure (unexplained.py)
     prediction: np.ndarray | None = field(default=None, repr=False)
@@ -92,8 +98,9 @@ class CauseResult:
 
     @property
     def eligible(self) -> bool:
-        """Significant and not blocked by the material-first rule (:mod:`.flexible`)."""
-        return self.significant and self.blocked_by is None
+        """Significant and not blocked by the material-first rule (:mod:`.flexible`), unless its
+        frame-space signature shows it is no material departure (:mod:`.stray_light`)."""
+        return self.significant and (self.blocked_by is None or self.frame_signature)
 
     @property
     def gain(self) -> float:
@@ -106,7 +113,8 @@ class CauseResult:
 
     @property
     def significant(self) -> bool:
-        return bool(self.identifiable and self.gain > self.threshold and all(g > 0 for g in self.fold_gains))
+        return bool(self.identifiable and self.refuted is None and self.gain > self.threshold
+                    and all(g > 0 for g in self.fold_gains))
 
     def to_json(self) -> dict:
         return {"name": self.name, "kind": self.kind, "space": self.space, "params": self.params, "stderr": self.stderr,
@@ -115,6 +123,7 @@ class CauseResult:
                 "n_extra_params": self.n_extra_params, "significant": self.significant,
                 "identifiable": self.identifiable, "note": self.note, "profile": self.profile,
                 "blocked_by": self.blocked_by, "vs_material": self.vs_material, "eligible": self.eligible,
+                "refuted": self.refuted, "frame_signature": self.frame_signature,
                 "physics": self.doc}
 
 
@@ -186,16 +195,19 @@ class BrdfModel:
         self.calibration["misfit"] = k.tolist()
         return huber_sigma(c["sigma"], c["y"] - base, HUBER_C)
 
-    def solve_linear(self, basis, train, factor=None):
-        """Weighted least squares of y on ``basis`` (times ``factor``) over ``train``;
-        returns (coefficients, prediction for all rows, covariance)."""
+    def solve_linear(self, basis, train, factor=None, offset=None):
+        """Weighted least squares of y on ``basis`` (times ``factor``) over ``train``; ``offset``: a
+        fixed term (no coefficient) taken off y first and added back to the prediction (stray light
+        of a size the frames measured, :mod:`.stray_light`). Returns (coefficients, prediction for
+        all rows, covariance)."""
         c = self.cols
         X = np.stack(basis, axis=1)
         if factor is not None:
             X = X * factor[:, None]
         sig = c.get("sigma", np.maximum(np.abs(c["y"]), 1e-3))
+        y = c["y"] if offset is None else c["y"] - offset
         A = X[train] / sig[train, None]
-        b = c["y"][train] / sig[train]
+        b = y[train] / sig[train]
         # normal equations (2-3 columns: a k x k solve instead of an SVD of the n x k matrix; speed),
         # the SVD where they are ill-conditioned
         AtA = A.T @ A
@@ -206,7 +218,8 @@ class BrdfModel:
         r = b - A @ coef
         dof = max(len(b) - len(coef), 1)
         cov = np.linalg.pinv(AtA) * float(r @ r) / dof
-        return coef, X @ coef, cov
+        pred = X @ coef
+        return coef, pred if offset is None else pred + offset, cov
 
     def folds(self) -> list[tuple[np.ndarray, np.ndarray]]:
         leds = np.unique(self.cols["led"])
@@ -220,6 +233,17 @@ class BrdfModel:
         v = self.cols["v"]
         top = v < np.median(v)
         return [(~top, top), (top, ~top)]
+
+
+def stray_extra(m: BrdfModel) -> np.ndarray:
+    """Stray light's BRDF term per unit s at every row, ``d^2 / (pi D^2 cos theta_in)`` (the
+    ``stray_light`` cause's physics, :func:`brdf_causes`): d from the LED to the row's surface
+    point, D the LED's distance from the cylinder axis (holder frame, mm)."""
+    c = m.cols
+    pts = m.data.table.iloc[m.rows][["x", "y", "z"]].to_numpy(float)
+    lamp = np.array([m.data.lamps[int(l)] for l in c["led"]], float)
+    ratio = np.sum((lamp - pts) ** 2, axis=1) / np.sum(lamp ** 2, axis=1)      # d^2 / D^2
+    return ratio / (np.pi * np.maximum(c["cos_in"], 0.05))
 
 
 def _base_brdf(m: BrdfModel):
@@ -345,11 +369,7 @@ def _brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
            "s I / (pi D^2) while an LED is on (D the LED's distance from the cylinder axis). Divided by the "
            "reference's cos(theta_in) I / d^2 (d from the LED to the surface point) it adds "
            "s d^2 / (pi D^2 cos theta_in) to the measured BRDF: largest at grazing incidence, independent of the lobe.")
-    tab = d.table.iloc[m.rows]
-    pts = tab[["x", "y", "z"]].to_numpy(float)
-    lamp = np.array([d.lamps[int(l)] for l in c["led"]], float)
-    ratio = np.sum((lamp - pts) ** 2, axis=1) / np.sum(lamp ** 2, axis=1)      # d^2 / D^2
-    extra = ratio / (np.pi * np.maximum(c["cos_in"], 0.05))
+    extra = stray_extra(m)
     out.append(_linear_cause(m, "stray_light", doc, [one, c["L"], extra], "s", "fraction of the LED's direct irradiance"))
     done(out[-1:])
 

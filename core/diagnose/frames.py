@@ -527,13 +527,17 @@ def frame_stage(sample_dir, measured, log=None, max_pixels: int | None = None):
     (:func:`glossrig.core.diagnose.data.load_frames`), one :class:`FrameSet` of them, every
     frame- and pixel-space cause (:func:`frame_causes`) and the linear sensor's residual
     structure (:func:`glossrig.core.diagnose.residuals.frame_structure`) on that same pixel
-    sample (it was built twice before). ``measured``: anything with the measurement's
-    ``geometry`` (rotation -> crop); ``max_pixels`` as :class:`FrameSet`'s. Returns (causes, structure)."""
+    sample (it was built twice before), and the veil the dark pixels of each LED's crop read
+    (:func:`glossrig.core.diagnose.stray_light.dark_veil`: stray light's frame-space signature).
+    ``measured``: anything with the measurement's ``geometry`` (rotation -> crop and white-patch
+    mask); ``max_pixels`` as :class:`FrameSet`'s. Returns (causes, structure, veil)."""
     from glossrig.core.diagnose.data import load_frames
     from glossrig.core.diagnose.residuals import frame_structure
+    from glossrig.core.diagnose.stray_light import dark_veil
 
-    fs = FrameSet(load_frames(sample_dir, measured), max_pixels=max_pixels)
-    return frame_causes(fs, log), frame_structure(fs)
+    fd = load_frames(sample_dir, measured)
+    fs = FrameSet(fd, max_pixels=max_pixels)
+    return frame_causes(fs, log), frame_structure(fs), dark_veil(fd, measured.geometry)
 
 
 class FrameStage:
@@ -555,7 +559,7 @@ class FrameStage:
                                          max_pixels=MAX_PIXELS)
 
     def result(self):
-        """(causes, structure) of :func:`frame_stage`; an interruption while waiting stops the worker."""
+        """(causes, structure, veil) of :func:`frame_stage`; an interruption while waiting stops the worker."""
         try:
             out = self._future.result()
         except BaseException:

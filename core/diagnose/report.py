@@ -14,11 +14,13 @@ SENSOR_SPACES = ("frames", "pixels")
 
 
 def ranking(causes: list[CauseResult]) -> list[CauseResult]:
-    """The eligible causes in the order the verdict reads them: sensor-level causes first, each
-    group by held-out gain (:func:`verdict` names the first; a capture hiding two effects should
+    """The eligible causes in the order the verdict reads them: sensor-level causes first, then
+    BRDF-space causes whose frame-space signature shows them present (stray light lighting the
+    pixels that see nothing, :mod:`.stray_light`: evidence from the frames, read before BRDF-space
+    gains as the sensor causes are), then the other BRDF-space causes, each group by held-out gain (:func:`verdict` names the first; a capture hiding two effects should
     have both among the first two)."""
     sig = [c for c in causes if c.eligible]
-    return sorted(sig, key=lambda c: (c.space not in SENSOR_SPACES, -c.gain))
+    return sorted(sig, key=lambda c: (0 if c.space in SENSOR_SPACES else 1 if c.frame_signature else 2, -c.gain))
 
 
 def verdict(causes: list[CauseResult]) -> str:
@@ -137,6 +139,18 @@ def _reference_calibration_lines(cal: dict | None) -> list[str]:
             "renormalised data.", ""]
 
 
+def _stray_frames_lines(ev: dict | None) -> list[str]:
+    """report.md's line on what the frames' dark pixels say about stray light (``meta.stray_light_frames``,
+    :func:`glossrig.core.diagnose.stray_light.frame_evidence`), none without a measurement."""
+    if not ev:
+        return []
+    return ["", f"Stray light in the frames: the pixels that see nothing lit read a veil of s = {ev['s']:.3g} "
+            f"+- {ev['se']:.2g} ({ev.get('unit', 'fraction of the LED direct irradiance')}; per LED: "
+            + ", ".join(f"{u['led']}: {u['s']:.3g}" for u in ev["units"])
+            + "). A uniform veil lights every pixel, so this bounds the stray_light cause's s from above; "
+            "where it is significant and the BRDF data agree with it, it is stray light's frame-space signature."]
+
+
 def _num(x):
     if isinstance(x, dict):
         return {k: _num(v) for k, v in x.items()}
@@ -201,6 +215,7 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
                  f"{w.error:.4g} (gain {w.gain:.1%}); parameters {json.dumps(_num(w.params))} "
                  f"+- {json.dumps(_num(w.stderr))} (statistical only - noise or fold spread; excludes calibration "
                  "and model error, so not the parameters' full uncertainty).")
+    L += _stray_frames_lines(meta.get("stray_light_frames"))
     if calibration:
         L += ["", f"Calibrated error model: base model's normalised held-out error "
               f"{calibration.get('heldout_error', float('nan')):.3g} (noise alone "
