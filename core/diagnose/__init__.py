@@ -21,17 +21,16 @@ from pathlib import Path
 import numpy as np
 
 from glossrig.core.errors import InputError
+from glossrig.core.fitting.export import read_fit_provenance
 
 from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes, one_blas_thread
 from glossrig.core.diagnose.data import load_brdf
+from glossrig.core.diagnose.fit_check import check_fit
 from glossrig.core.diagnose.frames import FrameStage, frame_stage
 from glossrig.core.diagnose.report import verdict, write_report
 from glossrig.core.diagnose.residuals import brdf_structure
 from glossrig.core.diagnose.stray_light import apply_frame_evidence, frame_evidence
 from glossrig.core.diagnose.unexplained import retested_cause, unexplained
-
-#: base-model median |relative error| above which a given fit cannot be this capture's material
-FIT_MISMATCH = 0.5
 
 
 def load_fit(path):
@@ -64,7 +63,8 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     (:func:`glossrig.core.extraction.extract.measure_capture`) with the same camera and lamps.
 
     ``fit``: a ``glossrig fit`` JSON from another capture of the material. It must predict this
-    capture's thesis-normalised data (a median miss below FIT_MISMATCH), and its lobe is then
+    capture's material (:func:`glossrig.core.diagnose.fit_check.check_fit`: the sample its
+    provenance names, else a median miss below its FIT_MISMATCH), and its lobe is then
     kept fixed (``material_fixed``, which makes a sample rotation offset identifiable). A fit is
     made on thesis-normalised data, so with a reference BRDF its lobe carries the reference's
     angular error: it is then only checked against the thesis-normalised data, the material is
@@ -102,13 +102,13 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
         log("reference calibration: data renormalised with the reference's own BRDF, median change "
             + ", ".join(f"{c} {e['median']:+.1%}" for c, e in cal["effect"].items() if e))
     t = data.table
+    fit_check = None
     if fit is not None:
         w = load_fit(fit)
         f = ward_from_angles(t.theta_in, t.theta_out, t.theta_h, t.phi_h, w)
-        rel = np.nanmedian(np.abs(t.f_thesis / np.maximum(f, 1e-9) - 1))      # rows with every channel
-        if not np.isfinite(rel) or rel > FIT_MISMATCH:
-            raise InputError(f"the fit does not belong to this capture: its model misses the measured BRDF by a "
-                             f"median {rel:.0%} (> {FIT_MISMATCH:.0%})", path=Path(fit))
+        rel = float(np.nanmedian(np.abs(t.f_thesis / np.maximum(f, 1e-9) - 1)))      # rows with every channel
+        fit_check = check_fit(fit, read_fit_provenance(fit), sample_dir, rel)
+        log(fit_check)
         data.material_fixed = cal is None
     if cal is not None:
         cal["fit"] = ("material refitted to the renormalised data" + (
@@ -149,7 +149,8 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     for c in causes:
         base.setdefault(c.space, c.base_error)
     meta = {"sample": str(sample_dir), "reference": str(reference_dir), "camera": str(camera), "lamps": str(lamps),
-            "fit": str(fit) if fit else None, "material": w.as_dict(), "material_from_capture": fit is None,
+            "fit": str(fit) if fit else None, "fit_check": fit_check, "material": w.as_dict(),
+            "material_from_capture": fit is None,
             "stray_light_frames": stray,
             "n_brdf_rows": int(len(m.rows)), "leds": sorted(int(x) for x in np.unique(t.led)),
             "missing_channels": m.channel_fill, "reference_calibration": cal or {"applied": False},

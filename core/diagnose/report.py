@@ -198,7 +198,8 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
     atomic_write_text(out / "report.json", json.dumps(rep, indent=1))
     files = _plots(out, structure, causes) if plots else []
     L = ["# glossrig diagnose report", "", f"Sample: `{meta.get('sample')}`  ", f"Reference: `{meta.get('reference')}`  ",
-         f"Material (Ward fit, luminance): {meta.get('material')}", "",
+         f"Material (Ward fit, luminance): {meta.get('material')}  ",
+         *([f"Given fit: {meta['fit_check']}  "] if meta.get("fit_check") else []), "",
          *_reference_calibration_lines(meta.get("reference_calibration")),
          f"## Verdict: **{v}**", ""]
     if v == "none":
