@@ -15,12 +15,12 @@ reported (``meta.reference_calibration``), not a cause (issue 14, item 4).
 from __future__ import annotations
 
 import contextlib
-import time
 from pathlib import Path
 
 import numpy as np
 
 from glossrig.core.errors import InputError
+from glossrig.core.progress import Elapsed
 from glossrig.core.fitting.export import read_fit_provenance
 
 from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes, one_blas_thread
@@ -81,11 +81,8 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     from glossrig.core.calibration.lamps import load_lamps
     from glossrig.core.models.ward import ward_from_angles
 
-    t0, c0 = time.time(), time.process_time()
-
-    def took() -> str:
-        """Elapsed wall and CPU time of this process (on a shared machine the CPU time is the figure to read)."""
-        return f"{time.time() - t0:.0f} s, CPU {time.process_time() - c0:.0f} s"
+    clock = Elapsed()
+    took = clock.__str__          # wall and this process's CPU time since the start
 
     stage = store.get_or_compute if store is not None else (lambda name, compute: compute())
     cam = load_camera(camera)
@@ -156,7 +153,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
             "missing_channels": m.channel_fill, "reference_calibration": cal or {"applied": False},
             "splits": {"brdf": "leave one LED out (per-LED parameters or one LED: the two halves of the pixel rows)",
                        "frames": "even / odd exposure index", "pixels": "even / odd exposure index (pixel set found under every LED)"},
-            "time_s": time.time() - t0}
+            "time_s": clock.seconds()[0]}
     # a named BRDF-space cause must leave no structure where no material acts (unexplained.py)
     with one_blas_thread():
         open_world = unexplained(m, fstructure, after=retested_cause(causes, verdict(causes)))

@@ -346,13 +346,10 @@ def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
 
 
 def _brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
-    import time
+    from glossrig.core.progress import Elapsed
 
-    t0, c0 = time.time(), time.process_time()
+    took = Elapsed().__str__
     say = log or (lambda *a: None)
-
-    def took() -> str:
-        return f"{time.time() - t0:.0f} s, CPU {time.process_time() - c0:.0f} s"
 
     def done(results: list[CauseResult]) -> None:
         """One progress line per cause as it finishes (a long loop says where it is)."""

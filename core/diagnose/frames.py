@@ -261,9 +261,9 @@ def frame_causes(fd: FrameData | FrameSet, log=None) -> list[CauseResult]:
 
 
 def _frame_causes(fd: FrameData | FrameSet, log=None) -> list[CauseResult]:
-    import time
+    from glossrig.core.progress import Elapsed
 
-    t0, c0 = time.time(), time.process_time()
+    took = Elapsed()
     fs = fd if isinstance(fd, FrameSet) else FrameSet(fd)
     fd = fs.fd
     out: list[CauseResult] = []
@@ -271,7 +271,7 @@ def _frame_causes(fd: FrameData | FrameSet, log=None) -> list[CauseResult]:
     def add(r: CauseResult) -> None:
         out.append(r)
         if log is not None:
-            log(f"  {r.name} fitted and scored ({time.time() - t0:.0f} s, CPU {time.process_time() - c0:.0f} s)")
+            log(f"  {r.name} fitted and scored ({took})")
 
     doc = ("Black level offset: the sensor's true black level differs from the one the raw file states by b DN "
            "(temperature, firmware). Every frame carries b on top of rate * t, so the relative error is largest "
