@@ -303,3 +303,34 @@ def test_sensor_only_noise_is_the_merge_s_own_and_the_led_term_adds_in_quadratur
     np.testing.assert_array_equal(r0, sensor)
     np.testing.assert_array_equal(r, np.hypot(sensor, 0.02))
     assert np.all(r0 <= r) and np.array_equal(nm.relative(f, cos_in, dist), r)
+
+
+def test_calibration_draws_move_every_lamp_by_one_shift(rig):
+    """CalibrationDraws' lamp shift (cu.LAMP_DRAW): each draw's angles for every LED are the
+    pixels' rays through that draw's camera towards the LED moved by the same (non-zero) shift,
+    and the camera draws do not depend on the lamps' (their own random stream)."""
+    from test_calibration_uncertainty import _board_views
+
+    from glossrig.core.calibration.intrinsics import board_points
+    from glossrig.core.fitting import calibration_uncertainty as cu
+    from glossrig.core.fitting.calibration_uncertainty import CameraViews
+
+    views = _board_views()
+    cv = CameraViews(obj=board_points((9, 6), 25.0), rvecs=[v[0] for v in views], tvecs=[v[1] for v in views],
+                     rms_px=0.15)
+    px = cov.pixel_geometry(rig, SCALE)
+    with_lamps = EB.CalibrationDraws(rig, px, cv, 3, 5, lamp_std_mm=0.7)
+    without = EB.CalibrationDraws(rig, px, cv, 3, 5)
+    for (K1, d1, _), (K0, d0, _) in zip(with_lamps.draws, without.draws):
+        np.testing.assert_allclose(K1, K0, rtol=1e-6)    # OpenCV's calibration does not repeat bitwise
+        np.testing.assert_allclose(d1, d0, rtol=1e-6, atol=1e-9)
+    n = with_lamps.u.size
+    for led in LEDS[:2]:
+        _, drawn = with_lamps.angles(led)
+        pos = np.asarray(rig.led(led).position, float)
+        for (K, d, poses), shift, got in zip(with_lamps.draws, with_lamps.lamp_shifts, drawn):
+            want = cu.row_angles(with_lamps.cal, with_lamps.u, with_lamps.v, np.full(n, led), np.zeros(n), K=K,
+                                 dist=d, poses=poses, lamps={led: pos + shift})
+            ok = want["valid"]
+            np.testing.assert_allclose(got["theta_in"][ok], want["theta_in"][ok], atol=1e-12)
+            assert np.linalg.norm(shift) > 0

@@ -37,6 +37,8 @@ def test_wide_lobes_keep_the_default_and_narrow_ones_get_more(rig):
     """Table 9.1's wide lobes keep spp 4 (their captures unchanged); brushed_original's
     alpha_y 0.0106 at scale 0.1 gets 64, the count that brought its error from -14 % to -2 %."""
     assert lobe_resolving_spp(rig, 0.1, 0.0327) == 4
+    assert lobe_resolving_spp(rig, 0.1, 0.0206) == 4 and lobe_resolving_spp(rig, 0.1, 0.0204) == 32
+    assert lobe_resolving_spp(rig, 0.1, 0.0031) == 704          # turn 0.01172 per pixel: ceil((7 * 0.01172 / 4 / 0.0031)^2) = 44
     assert lobe_resolving_spp(rig, 0.1, 0.0106) == 64
     assert lobe_resolving_spp(rig, 0.25, 0.0106) == 4
     assert lobe_resolving_spp(rig, 0.1, 0.0106, spp=256) == 256

@@ -308,7 +308,7 @@ def lobe_resolving_spp(rig, scale: float, alpha_min: float, spp: int = 4, supers
     Measured on the coverage study's brushed_original (alpha_y 0.0106) at scale 0.1, round 7
     (validation/uncertainty_coverage.md, section 3): alpha_y came out -14.1 % with 1 sample
     per canvas pixel (3.6 per alpha), -2.1 % with 4 (7.2 per alpha), -0.8 % with 16; rho_s
-    -20 %, -8.6 %, -6.8 %. A wider lobe (alpha >= 0.033) needs 1 at scale 0.1."""
+    -20 %, -8.6 %, -6.8 %. At scale 0.1 a lobe wider than alpha 0.0205 needs 1."""
     ss = LensMap.DEFAULT_SUPERSAMPLE if supersample is None else int(supersample)
     cam = rig.camera
     turn = (cam.distance_to_axis - rig.cylinder_radius) / (float(cam.matrix(scale)[0, 0]) * rig.cylinder_radius)

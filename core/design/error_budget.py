@@ -340,7 +340,8 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
               "led_aperture_rad": aperture,
               "intrinsics": (f"{intrinsics_draws} draws of the camera calibration (parametric bootstrap of its "
                              f"{len(camera_views.rvecs)} views, reprojection RMS {camera_views.rms_px:g} px), poses "
-                             "re-solved from the markers" if camera_views is not None else
+                             f"re-solved from the markers, every lamp shifted by one draw of {lamp_std:g} mm per axis, "
+                             "refitted" if camera_views is not None else
                              "not drawn (no camera calibration views given): carried by the pose figures")}
     out, bound = {}, {}
     for label, p in materials:
@@ -399,7 +400,8 @@ class _Sums:
         self.intr_rows.append((nom, y, table_weight, [take(a) for a in drawn]))
 
     def intrinsics_variance(self, p: WardParams) -> np.ndarray:
-        """Variance of the fitted parameters over the intrinsics draws (GUM-S1): the nominal
+        """Variance of the fitted parameters over the calibration draws (:class:`CalibrationDraws`:
+        intrinsics and the lamps' common shift; GUM-S1): the nominal
         data refitted at each draw's angles by the pipeline's weighted least squares (the
         Gauss-Newton refit of :mod:`glossrig.core.fitting.calibration_uncertainty`, eq.
         4.81-4.82, warm-started), minus the same refit at the nominal angles; a row a draw

@@ -68,6 +68,8 @@ def check_fit(fit_path, provenance: dict | None, sample_dir, misfit: float) -> s
     return the line the diagnosis logs and reports: which check accepted it. ``misfit``: the
     fit's median relative miss of this capture's data (rows with every channel)."""
     src = _fit_source(provenance)
+    if src is not None and not src.is_absolute():
+        src = Path(fit_path).parent / src          # a relative source is the fit file's
     theirs = sample_name(src) if src is not None else None
     ours = sample_name(Path(sample_dir))
     if theirs is not None and ours is not None:

@@ -17,8 +17,11 @@ def ranking(causes: list[CauseResult]) -> list[CauseResult]:
     """The eligible causes in the order the verdict reads them: sensor-level causes first, then
     BRDF-space causes whose frame-space signature shows them present (stray light lighting the
     pixels that see nothing, :mod:`.stray_light`: evidence from the frames, read before BRDF-space
-    gains as the sensor causes are), then the other BRDF-space causes, each group by held-out gain (:func:`verdict` names the first; a capture hiding two effects should
-    have both among the first two)."""
+    gains as the sensor causes are), then the other BRDF-space causes, each group by its gain
+    (:func:`verdict` names the first; a capture hiding two effects should have both among the
+    first two). The gain is held-out for every cause but one named by its frame signature,
+    whose veil is measured in the frames and tested on all BRDF rows per LED
+    (:func:`.stray_light.apply_frame_evidence`; its held-out fold gains are recorded beside it)."""
     sig = [c for c in causes if c.eligible]
     return sorted(sig, key=lambda c: (0 if c.space in SENSOR_SPACES else 1 if c.frame_signature else 2, -c.gain))
 

@@ -17,7 +17,11 @@ Every calibration stage states its uncertainty in the file it writes:
   independently per LED (as before 2026-11-25) the errors of several LEDs partly cancel
   in the fit: on brushed_original's scale-0.1 measurement of calibration round 1 the
   calibrated lamps alone (the twin's true camera and poses) moved alpha_y by -8.4 % and
-  rho_s by -12 %, where the whole calibration component stated 3.0 % and 4.8 %;
+  rho_s by -12 %, where the whole calibration component stated 3.0 % and 4.8 %. Not drawn:
+  the lamps' spread about their common error within a calibration (0.11, 0.20, 0.30 mm; on z
+  ~0.8 of the common part), which a parameter set by differences between LEDs would feel,
+  and the lamps' correlation with the intrinsics and pose draws (the lamps are drawn
+  independently of them, although their error comes from that geometry);
 * reference albedo - a relative standard uncertainty of its level
   (:data:`ALBEDO_U_REL`) and of its angular variation (:data:`ALBEDO_ANGULAR_U_REL`).
 
