@@ -54,11 +54,12 @@ def synthetic():
 
 def test_lamp_component_matches_linearisation(synthetic):
     """The Monte Carlo spread over lamp draws agrees with the finite-difference
-    linearisation of the draws' model (cu.LAMP_DRAW: one shift of every lamp, each LED's
-    own u per axis), sum over the axes of (d p / d shift)^2: with 32 draws a standard
+    linearisation of the draws' model (cu.LAMP_DRAW: per axis a fraction f of each LED's
+    variance common to every LED, 1 - f its own), sum over the axes of f (d p / d common
+    shift)^2 + (1 - f) sum over LEDs (d p / d L_k)^2: with 32 draws a standard
     deviation is estimated to 1/sqrt(2 * 31) = 13 %, so 3 of those (and a few per cent of
     nonlinearity) bound the ratio to [0.55, 1.45]. (Independent draws per LED would give
-    the smaller sum over LEDs and axes; the test fails for them where the LEDs' effects add.)"""
+    the sum over LEDs alone; the test fails for them where the LEDs' effects add.)"""
     df, cal, x0 = synthetic
     n = 32
     comp = cu.calibration_component(df, {"luminance": TRUE}, cal, n_draws=n, sources=("lamps",), max_rows=4000)
@@ -77,10 +78,14 @@ def test_lamp_component_matches_linearisation(synthetic):
 
     var = np.zeros(5)
     for ax in range(3):
-        e = np.eye(3)[ax]
+        e, f = np.eye(3)[ax], cu.LAMP_COMMON_FRACTION[ax]
         plus = fit({k: p + cal.lamps_std[k] * e for k, p in cal.lamps.items()})
         minus = fit({k: p - cal.lamps_std[k] * e for k, p in cal.lamps.items()})
-        var += ((plus - minus) / 2) ** 2
+        var += f * ((plus - minus) / 2) ** 2                   # the part common to every LED
+        for k in cal.lamps:                                     # each LED's own part
+            plus = fit({**cal.lamps, k: cal.lamps[k] + cal.lamps_std[k] * e})
+            minus = fit({**cal.lamps, k: cal.lamps[k] - cal.lamps_std[k] * e})
+            var += (1 - f) * ((plus - minus) / 2) ** 2
     u_lin = np.sqrt(var)
     for i, name in enumerate(cu.PARAM_NAMES):
         if name in ("alpha_x", "alpha_y", "lobe_rotation"):

@@ -12,6 +12,7 @@ from glossrig.core.design import coverage as cov
 from glossrig.core.design import error_budget as EB
 from glossrig.core.design import fisher as fi
 from glossrig.core.design.placement import _rows_for
+from glossrig.core.fitting.calibration_uncertainty import LAMP_COMMON_FRACTION
 from glossrig.core.models.ward import WardParams
 from glossrig.core.rig import default_rig_path, load_rig
 
@@ -51,9 +52,10 @@ def _ratio_sigma(nm, f, a, rig):
 
 
 def test_lamp_term_equals_the_spread_of_nonlinear_refits(rig):
-    """The calibration component with only the lamps (0.5 mm per axis, every lamp moved
-    alike: cu.LAMP_DRAW) is the root sum of squares over the axes of the parameter shifts
-    that moving every lamp by 0.5 mm along that axis causes; here those shifts come from
+    """The calibration component with only the lamps (0.5 mm per axis, split as cu.LAMP_DRAW
+    into a fraction f common to every LED and 1 - f each LED's own) is the root of the sum over
+    the axes of f times the squared parameter shift that moving every lamp by 0.5 mm along that
+    axis causes and 1 - f times those of each lamp moved alone; here those shifts come from
     full nonlinear least-squares refits, with the pipeline's weights (eq. 4.82 over the
     ratio's noise), of data computed at the moved lamps. A 0.5 mm move is ~0.1 degree of
     lamp direction, small against the lobe (2-3 degrees), so the linearisation holds to a
@@ -63,12 +65,12 @@ def test_lamp_term_equals_the_spread_of_nonlinear_refits(rig):
     blocks, nm = _blocks(rig, "relative:0.03")
     x0 = np.array([getattr(P, k) for k in fi.PARAMS])
 
-    def refit(delta):
+    def refit(delta, only=None):
         def fun(x):
             p = WardParams(*x)
             out = []
-            for _i, lamp, sub, a, w, m in blocks:
-                am = cov.direction_angles(sub, lamp + delta, half=True)
+            for i, lamp, sub, a, w, m in blocks:
+                am = cov.direction_angles(sub, lamp + delta, half=True) if only in (None, i) else a
                 for r in ROTS:
                     y = _ward(am, r, P)[0]
                     f = _ward(a, r, p)[0]
@@ -78,8 +80,10 @@ def test_lamp_term_equals_the_spread_of_nonlinear_refits(rig):
         return least_squares(fun, x0, x_scale=np.abs(x0) + 1e-3, xtol=1e-14, ftol=1e-14, gtol=1e-14).x - x0
 
     var = np.zeros(5)
-    for e in np.eye(3):
-        var += refit(0.5 * e) ** 2
+    for e, f in zip(np.eye(3), LAMP_COMMON_FRACTION):
+        var += f * refit(0.5 * e) ** 2
+        for i in LEDS:
+            var += (1 - f) * refit(0.5 * e, only=i) ** 2
     u = np.sqrt(var)
     for k, name in enumerate(fi.PARAMS):
         got = b["components"]["calibration"][name]
@@ -307,8 +311,9 @@ def test_sensor_only_noise_is_the_merge_s_own_and_the_led_term_adds_in_quadratur
 
 def test_calibration_draws_move_every_lamp_by_one_shift(rig):
     """CalibrationDraws' lamp shift (cu.LAMP_DRAW): each draw's angles for every LED are the
-    pixels' rays through that draw's camera towards the LED moved by the same (non-zero) shift,
-    and the camera draws do not depend on the lamps' (their own random stream)."""
+    pixels' rays through that draw's camera towards the LED moved by the shift common to every
+    LED (non-zero) plus the LED's own, and the camera draws do not depend on the lamps' (their
+    own random streams)."""
     from test_calibration_uncertainty import _board_views
 
     from glossrig.core.calibration.intrinsics import board_points
@@ -328,9 +333,11 @@ def test_calibration_draws_move_every_lamp_by_one_shift(rig):
     for led in LEDS[:2]:
         _, drawn = with_lamps.angles(led)
         pos = np.asarray(rig.led(led).position, float)
-        for (K, d, poses), shift, got in zip(with_lamps.draws, with_lamps.lamp_shifts, drawn):
+        f = np.asarray(cu.LAMP_COMMON_FRACTION)
+        own = 0.7 * np.sqrt(1 - f) * np.random.default_rng([5, 2, led]).standard_normal((3, 3))
+        for (K, d, poses), shift, o, got in zip(with_lamps.draws, with_lamps.lamp_shifts, own, drawn):
             want = cu.row_angles(with_lamps.cal, with_lamps.u, with_lamps.v, np.full(n, led), np.zeros(n), K=K,
-                                 dist=d, poses=poses, lamps={led: pos + shift})
+                                 dist=d, poses=poses, lamps={led: pos + shift + o})
             ok = want["valid"]
             np.testing.assert_allclose(got["theta_in"][ok], want["theta_in"][ok], atol=1e-12)
             assert np.linalg.norm(shift) > 0

@@ -32,10 +32,10 @@ component's variance:
   :data:`GAIN_REL` per block; the misfit ``glossrig fit`` measures with its cluster-robust
   sandwich over the same blocks;
 * ``calibration`` - the LEDs' positions, :data:`~glossrig.core.calibration.lamps.LAMP_STD_MM`
-  per holder axis, moved together: a calibration's lamp errors are common to its LEDs, as
-  the fit draws them (:data:`glossrig.core.fitting.calibration_uncertainty.LAMP_DRAW`).
-  Without camera views linearised (``df = f`` at the moved lamps ``- f``, every LED and
-  rotation summed before squaring); with them drawn in :class:`CalibrationDraws` and
+  per holder axis, mostly common to the LEDs, as the fit draws them
+  (:data:`glossrig.core.fitting.calibration_uncertainty.LAMP_DRAW`). Without camera views
+  linearised (``df = f`` at the moved lamps ``- f``: the common part summed over every LED
+  and rotation before squaring, the LED's own part per LED); with them drawn in :class:`CalibrationDraws` and
   refitted, because for a lobe narrower than the lamp error's angle the response is not
   linear (brushed_original at scale 0.1, 4 LEDs: the one-sided difference gave alpha_y
   0.5 % at 0.5 mm and 2.0 % at 1 mm, four times for twice the shift, where the fit's
@@ -130,9 +130,10 @@ class CalibrationDraws:
     The pipeline then takes each pixel's value for the angles of the drawn geometry: the
     data are the nominal angles' values, the model is evaluated at the drawn ones. This is
     the intrinsics' effect that the poses do not absorb (a rigid pose figure cannot carry
-    it; validation/uncertainty_coverage.md, section 3). Each draw also moves every lamp by
-    one shift of ``lamp_std_mm`` per holder axis (a normal draw of its own random stream,
-    so the intrinsics' draws do not depend on it). ``views``: a
+    it; validation/uncertainty_coverage.md, section 3). Each draw also moves the lamps by
+    ``lamp_std_mm`` per holder axis, split as the fit splits it into a shift common to every LED
+    and the LED's own (normal draws of their own random streams, so the intrinsics' draws do
+    not depend on them). ``views``: a
     :class:`~glossrig.core.fitting.calibration_uncertainty.CameraViews` of a calibration at
     the design's image size."""
 
@@ -159,8 +160,12 @@ class CalibrationDraws:
                                         camera_views=views)
         rng = np.random.default_rng(seed)
         self.draws = [cu.draw_calibration(self.cal, rng, ("intrinsics",))[:3] for _ in range(n_draws)]
-        # the lamps: one shift of every LED per draw (cu.LAMP_DRAW), from a stream of its own
-        self.lamp_shifts = float(lamp_std_mm) * np.random.default_rng([seed, 1]).standard_normal((n_draws, 3))
+        # the lamps (cu.LAMP_DRAW): per draw a shift common to every LED and each LED's own, from streams of
+        # their own (so the camera draws do not depend on them)
+        self.lamp_std, self.seed = float(lamp_std_mm), seed
+        self.common_fraction = np.asarray(cu.LAMP_COMMON_FRACTION)
+        self.lamp_shifts = self.lamp_std * np.sqrt(self.common_fraction) * \
+            np.random.default_rng([seed, 1]).standard_normal((n_draws, 3))
         self.rig, self.px = rig, px
         # pixel centres as row_angles casts them (u + 0.5: a Bayer block's corner there)
         self.u, self.v = px.u.astype(float) - 0.5, px.v.astype(float) - 0.5
@@ -180,8 +185,10 @@ class CalibrationDraws:
             return {k: np.where(ok, a[k], np.nan) for k in _ANGLES}
 
         nominal = deg(cu.row_angles(self.cal, *args, lamps=lamps))
-        drawn = [deg(cu.row_angles(self.cal, *args, K=K, dist=d, poses=p, lamps={int(led): lamp + shift}))
-                 for (K, d, p), shift in zip(self.draws, self.lamp_shifts)]
+        own = self.lamp_std * np.sqrt(1 - self.common_fraction) * \
+            np.random.default_rng([self.seed, 2, int(led)]).standard_normal((len(self.draws), 3))
+        drawn = [deg(cu.row_angles(self.cal, *args, K=K, dist=d, poses=p, lamps={int(led): lamp + shift + o}))
+                 for (K, d, p), shift, o in zip(self.draws, self.lamp_shifts, own)]
         return nominal, drawn
 
 
@@ -254,7 +261,8 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
     (the same rows, noise model and :func:`~glossrig.core.design.fisher.gain_marginal_information`)."""
     from glossrig.core.calibration.lamps import LAMP_STD_MM
     from glossrig.core.design.placement import _rows_for
-    from glossrig.core.fitting.calibration_uncertainty import ALBEDO_ANGULAR_U_REL, ALBEDO_U_REL, rotation_from_vector
+    from glossrig.core.fitting.calibration_uncertainty import (ALBEDO_ANGULAR_U_REL, ALBEDO_U_REL,
+                                                                LAMP_COMMON_FRACTION, rotation_from_vector)
     from glossrig.core.fitting.fit import peak_weight
     from glossrig.core.fitting.uncertainty import DEFAULT_LED_APERTURE, blur_effect, led_slope_variance
     from glossrig.core.models.ward import ward_geometry, ward_parts
@@ -311,7 +319,9 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
                 s.n_rows += int(round(w.sum()))
                 add(f"gain_{i}_{r:g}", "model", gain_rel, JW.T @ f)
                 for k, am in enumerate(moved_lamps if intr is None else []):  # else drawn with the camera
-                    add(f"lamp_{k}", "calibration", 1.0, JW.T @ (_ward(am, r, p)[0] - f))   # every lamp moved alike
+                    vec = JW.T @ (_ward(am, r, p)[0] - f)       # the common part moves every lamp alike
+                    add(f"lamp_{k}", "calibration", math.sqrt(LAMP_COMMON_FRACTION[k]), vec)
+                    add(f"lamp_{i}_{k}", "calibration", math.sqrt(1 - LAMP_COMMON_FRACTION[k]), vec)
                 for name, am in moved_poses:
                     add(f"{name}_{r:g}", "calibration", 1.0, JW.T @ (_ward(am, r, p)[0] - f))
                 if a_intr is not None:
@@ -340,7 +350,7 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
               "led_aperture_rad": aperture,
               "intrinsics": (f"{intrinsics_draws} draws of the camera calibration (parametric bootstrap of its "
                              f"{len(camera_views.rvecs)} views, reprojection RMS {camera_views.rms_px:g} px), poses "
-                             f"re-solved from the markers, every lamp shifted by one draw of {lamp_std:g} mm per axis, "
+                             f"re-solved from the markers, the lamps drawn with {lamp_std:g} mm per axis (cu.LAMP_DRAW), "
                              "refitted" if camera_views is not None else
                              "not drawn (no camera calibration views given): carried by the pose figures")}
     out, bound = {}, {}
