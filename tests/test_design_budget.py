@@ -326,9 +326,13 @@ def test_calibration_draws_move_every_lamp_by_one_shift(rig):
     px = cov.pixel_geometry(rig, SCALE)
     with_lamps = EB.CalibrationDraws(rig, px, cv, 3, 5, lamp_std_mm=0.7)
     without = EB.CalibrationDraws(rig, px, cv, 3, 5)
+    # the same camera draws: apart by far less than the draws differ from each other (OpenCV's
+    # calibration does not repeat bitwise, and under load not even to 1e-6)
+    Ks = np.array([d[0] for d in without.draws])
+    ds = np.array([np.ravel(d[1]) for d in without.draws])
     for (K1, d1, _), (K0, d0, _) in zip(with_lamps.draws, without.draws):
-        np.testing.assert_allclose(K1, K0, rtol=1e-6)    # OpenCV's calibration does not repeat bitwise
-        np.testing.assert_allclose(d1, d0, rtol=1e-6, atol=1e-9)
+        assert np.all(np.abs(K1 - K0) <= 1e-3 * Ks.std(axis=0) + 1e-12)
+        assert np.all(np.abs(np.ravel(d1) - np.ravel(d0)) <= 1e-3 * ds.std(axis=0) + 1e-12)
     n = with_lamps.u.size
     for led in LEDS[:2]:
         _, drawn = with_lamps.angles(led)

@@ -287,12 +287,15 @@ def render_array(scene, spp: int | None = None, seed: int = 0) -> np.ndarray:
     return np.array(img, dtype=np.float32)
 
 
+#: Samples per output pixel of the twin's renders unless asked otherwise (``glossrig simulate --spp``).
+DEFAULT_SPP = 4
 #: Canvas samples across the narrower width ``alpha`` of a lobe that :func:`lobe_resolving_spp`
 #: asks for (see there).
 SAMPLES_PER_LOBE_WIDTH = 7.0
 
 
-def lobe_resolving_spp(rig, scale: float, alpha_min: float, spp: int = 4, supersample: int | None = None) -> int:
+def lobe_resolving_spp(rig, scale: float, alpha_min: float, spp: int = DEFAULT_SPP,
+                       supersample: int | None = None) -> int:
     """Samples per output pixel that resolve a glossy lobe of narrower width ``alpha_min``
     (Ward's alpha, radians of half-vector slope) at ``scale``: at least ``spp``, and enough
     that the canvas's random samples lie ~1 / :data:`SAMPLES_PER_LOBE_WIDTH` of ``alpha_min``

@@ -39,6 +39,7 @@ from glossrig.core.progress import progress_enabled
 from glossrig.core.rig import load_rig
 
 from .effects import THESIS_FLUCTUATIONS, parse_effects
+from .render import DEFAULT_SPP
 
 
 def prepare_out(out: Path, resume: bool = False) -> None:
@@ -132,7 +133,7 @@ def _check_resume(out: Path, options: dict) -> bool:
 
 
 def simulate(rig_path, material_spec: str, leds_spec, rotations, repeats: int, scale: float, seed: int,
-             effects_text: str | None, out, target: str = "sample", ideal: bool = False, spp: int = 4,
+             effects_text: str | None, out, target: str = "sample", ideal: bool = False, spp: int = DEFAULT_SPP,
              keep_exr: bool = False, views: int = 12, progress: bool = True, resume: bool = False) -> Path:
     """Synthesise a capture folder (module docstring); ``resume`` completes an interrupted one.
 

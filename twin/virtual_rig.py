@@ -30,7 +30,7 @@ from glossrig.core.models.materials import Material
 from glossrig.core.rig import Rig
 
 from .effects import EffectState
-from .render import LensMap, render_array
+from .render import DEFAULT_SPP, LensMap, render_array
 from .sensor import frame_rng
 from .scene import LED_RGB, MM, ROTATING_KINDS, SceneSpec, new_workdir, sample_scene
 
@@ -40,7 +40,7 @@ SHOT_OVERHEAD_S = (240.0 - 61.00725) / 18.0   # Table 4.1's exposures sum to 61.
 
 class VirtualRig:
     def __init__(self, rig: Rig, material: Material, *, scale: float = 0.25, seed: int = 0,
-                 effects: dict[str, float] | None = None, spp: int = 4):
+                 effects: dict[str, float] | None = None, spp: int = DEFAULT_SPP):
         from .sensor import SensorModel
 
 

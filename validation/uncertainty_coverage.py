@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from glossrig.twin.render import DEFAULT_SPP
 from validation.common import calibrate, capture, extract
 
 PARAMS = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
@@ -52,10 +53,6 @@ MATERIALS = ("sample_0_6", "sample_2_6", "sample_4_10", "sample_5_6", "polyethyl
              "ward:rho_d=0.05,rho_s=0.012,alpha_x=0.09,alpha_y=0.035,lobe_rotation=1.2",
              "ward:rho_d=0.05,rho_s=0.012,alpha_x=0.09,alpha_y=0.035,lobe_rotation=2.0")
 REFERENCE_ALBEDO = 0.8
-
-
-#: The twin's samples per pixel where a material's lobe needs no more (``glossrig simulate --spp``).
-DEFAULT_SPP = 4
 
 
 def render_spp(material: str, scale: float) -> int:

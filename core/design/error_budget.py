@@ -318,7 +318,7 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
                 JW = J * (w * mult ** 2)[:, None]
                 s.n_rows += int(round(w.sum()))
                 add(f"gain_{i}_{r:g}", "model", gain_rel, JW.T @ f)
-                for k, am in enumerate(moved_lamps if intr is None else []):  # else drawn with the camera
+                for k, am in enumerate(moved_lamps):     # none where the lamps are drawn with the camera
                     vec = JW.T @ (_ward(am, r, p)[0] - f)       # the common part moves every lamp alike
                     add(f"lamp_{k}", "calibration", math.sqrt(LAMP_COMMON_FRACTION[k]), vec)
                     add(f"lamp_{i}_{k}", "calibration", math.sqrt(1 - LAMP_COMMON_FRACTION[k]), vec)

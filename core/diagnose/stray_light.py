@@ -277,5 +277,5 @@ def apply_frame_evidence(m, causes: list[CauseResult], ev: dict | None) -> None:
     if s_b > bound:
         c.refuted = (f"the frames refute it: the darkest off-sample pixels read a veil of at most s = "
                      f"{ev['s']:.2g} +- {ev['se']:.2g} (a uniform veil lights every pixel), the BRDF-space fit "
-                     f"needs s = {s_b:.3g}: the rise toward grazing incidence is the material's")
+                     f"needs s = {s_b:.3g}: what rises toward grazing incidence in the BRDF data is no veil")
         c.note = (c.note + "; " if c.note else "") + c.refuted
