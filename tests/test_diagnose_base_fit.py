@@ -18,7 +18,7 @@ import pytest
 from scipy.optimize import lsq_linear
 
 from glossrig.core.diagnose.channels import fill_missing_channels
-from glossrig.core.diagnose.material_models import _linear
+from glossrig.core.fitting.fit import lobe_albedos
 from glossrig.core.errors import InputError
 from glossrig.core.fitting.fit import RHO_S_MAX, _nnls2, fit_samples, fit_ward
 from glossrig.core.models.ward import WardParams, ward_from_angles
@@ -109,7 +109,7 @@ def test_diagnose_channel_fill_gives_an_unseen_lobe_no_amplitude(geo):
     filled_red = (y[near] - t[["g", "b"]].to_numpy()[near] @ [0.7152, 0.0722]) / 0.2126
     np.testing.assert_allclose(filled_red, info["r"]["rho_d"] / np.pi, rtol=1e-9)
     assert info["r"]["rho_d"] / np.pi <= np.nanmax(red)
-    rd, rs = _linear(L[~near], red[~near], np.ones(int((~near).sum())))
+    rd, rs, _ = lobe_albedos(L[~near], red[~near], np.ones(int((~near).sum())))
     assert (rd, rs) == (info["r"]["rho_d"], 0.0)
 
 

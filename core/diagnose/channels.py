@@ -7,7 +7,7 @@ with the base model, so a row that misses channel c gets, for that channel only,
 prediction of the base model of channel c: the lobe L of the material fit (shared by the
 channels, as the luminance fit's lobe) with ``rho_d,c`` and ``rho_s,c`` solved by
 non-negative weighted least squares on the rows that have the channel
-(:func:`glossrig.core.diagnose.material_models._linear`; thesis eq. 4.79 per
+(:func:`glossrig.core.fitting.fit.lobe_albedos`; thesis eq. 4.79 per
 channel; the weights are ``weight_<c>``, the channel's inverse HDR variance, where the
 table has them). :func:`glossrig.core.fitting.fit.fit_samples` fills luminance's gaps the
 same way with each channel's own Ward fit; here the lobe is the one every cause of the
@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from glossrig.core.diagnose.data import LUMA
-from glossrig.core.diagnose.material_models import _linear
+from glossrig.core.fitting.fit import lobe_albedos
 
 MIN_ROWS = 50       # measured rows a channel needs for its base model to predict it elsewhere
 
@@ -57,7 +57,7 @@ def fill_missing_channels(t, L, relvar=None) -> tuple[np.ndarray, np.ndarray | N
         else:
             w = np.asarray(t[f"weight_{c}"], float)[rows] if f"weight_{c}" in t else np.ones(int(rows.sum()))
             sw = np.sqrt(np.where(np.isfinite(w) & (w > 0), w, 0.0))
-            rho_d, rho_s = _linear(L[rows], rgb[rows, k], sw)
+            rho_d, rho_s, _ = lobe_albedos(L[rows], rgb[rows, k], sw)
             rgb[gap, k] = rho_d / np.pi + rho_s * L[gap]
             entry.update(predicted_by="the base model of the channel (shared lobe)", rho_d=rho_d, rho_s=rho_s)
         info[c] = entry

@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+from glossrig.core.fitting.fit import lobe_albedos
 from glossrig.core.models.ward import WardParams, ward_from_angles
 
 ANGLES = ("theta_in", "phi_in", "theta_out", "phi_out", "theta_h", "phi_h", "theta_d")
@@ -199,15 +200,6 @@ def fit_weights(t) -> np.ndarray:
     return W
 
 
-def _linear(L, y, W):
-    """(rho_d, rho_s) of the lobe column ``L``: :func:`glossrig.core.fitting.fit.lobe_albedos`
-    (weighted least squares of y on [1/pi, L], rho_d >= 0, 0 <= rho_s <= RHO_S_MAX by energy
-    conservation, thesis eq. 2.4; a lobe the data do not see is none)."""
-    from glossrig.core.fitting.fit import lobe_albedos
-
-    return lobe_albedos(L, y, W)[:2]
-
-
 def fit_lobe(a: dict, y, W, kind: str = "ggx", start=(0.1, 0.1, 0.0), n=None, fit_n: bool = False,
              uncertainty: bool = True) -> LobeFit:
     """Fit ``rho_d/pi + rho_s * lobe`` to y (weighted by W, as eq. 4.81). The lobe's
@@ -225,7 +217,7 @@ def fit_lobe(a: dict, y, W, kind: str = "ggx", start=(0.1, 0.1, 0.0), n=None, fi
     def res(x):
         ax, ay, rot, nn = shape(x)
         L = lobe(*(a[k] for k in ANGLES), ax, ay, rot, nn)
-        rd, rs = _linear(L, y, W)
+        rd, rs, _ = lobe_albedos(L, y, W)
         return W * (rd / np.pi + rs * L - y)
 
     x0 = [math.log(start[0]), math.log(start[1]), start[2]] + ([1.5] if fit_n else [])
@@ -250,7 +242,7 @@ def fit_lobe(a: dict, y, W, kind: str = "ggx", start=(0.1, 0.1, 0.0), n=None, fi
         ax, ay, rot = ay, ax, rot + np.pi / 2
     rot = float(np.mod(rot, np.pi))
     L = lobe(*(a[k] for k in ANGLES), ax, ay, rot, nn)
-    rd, rs = _linear(L, y, W)
+    rd, rs, _ = lobe_albedos(L, y, W)
     f = LobeFit(kind, rd, rs, ax, ay, rot, nn, cost=float(2 * best.cost / max(len(y), 1)))
     if uncertainty:
         names = ["rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation"] + (["n"] if fit_n else [])

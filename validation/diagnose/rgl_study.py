@@ -350,15 +350,16 @@ def fit_grazing(a: dict, y, W, lobe):
     import numpy as np
     from scipy.optimize import minimize_scalar
 
-    from glossrig.core.diagnose.material_models import (ANGLES, GRAZING_F90_RANGE, LOBES, LobeFit, _linear,
+    from glossrig.core.diagnose.material_models import (ANGLES, GRAZING_F90_RANGE, LOBES, LobeFit,
                                                         grazing_factor)
+    from glossrig.core.fitting.fit import lobe_albedos
 
     y, W = np.asarray(y, float), np.asarray(W, float)
     L = LOBES[lobe.kind](*(a[k] for k in ANGLES), lobe.alpha_x, lobe.alpha_y, lobe.lobe_rotation, lobe.n)
 
     def solve(f90):
         G = grazing_factor(a["theta_in"], a["theta_out"], f90)
-        rd, rs = _linear(L / G, y / G, W * G)
+        rd, rs, _ = lobe_albedos(L / G, y / G, W * G)
         return rd, rs, float(np.sum((W * (rd / np.pi * G + rs * L - y)) ** 2))
 
     grid = np.linspace(*GRAZING_F90_RANGE, 17)
