@@ -68,7 +68,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--target", choices=["sample", "checkerboard"], default="sample",
                    help="what is photographed: the sample under its LEDs, or checkerboard views for calibrate camera")
     p.add_argument("--views", type=int, default=12, help="checkerboard views (with --target checkerboard)")
-    p.add_argument("--spp", type=int, default=4, help="samples per pixel of each render (anti-aliasing)")
+    p.add_argument("--spp", type=int, default=None,
+                   help="samples per pixel of each render (anti-aliasing; default: the twin's DEFAULT_SPP, "
+                        "glossrig.twin.render)")
     p.add_argument("--keep-exr", action="store_true", help="also write each LED's linear render as OpenEXR")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--out", required=True, help="capture folder to create (must not exist or be empty)")
@@ -115,7 +117,8 @@ def run(args) -> int:
             raise InputError(f"--repeats must be >= 1 and --scale in [0.01, 1], got {args.repeats} and {args.scale}")
         _clear_own_capture(Path(args.out))
     out = simulate(args.rig, args.material, args.leds, rotations, args.repeats, args.scale, args.seed,
-                   args.effects, args.out, target=args.target, ideal=args.ideal, spp=args.spp,
+                   args.effects, args.out, target=args.target, ideal=args.ideal,
+                   **({} if args.spp is None else {"spp": args.spp}),
                    keep_exr=args.keep_exr, views=args.views, progress=not args.no_progress, resume=resume)
     print(f"capture written to {out}")
     return 0
