@@ -213,22 +213,30 @@ def read_samples(path: str | Path) -> pd.DataFrame:
         raise InputError(f"cannot convert the table ({e})", path=path) from None
     out = validate_samples(df, path)
     out.attrs["provenance"] = _provenance_of(table.schema.metadata, path)
+    out.attrs["poses"] = _provenance_of(table.schema.metadata, path, POSES_KEY)
     return out
 
 
-def _provenance_of(meta: dict | None, path) -> dict | None:
-    """The provenance JSON of a Parquet schema's metadata (None when not recorded)."""
+#: schema metadata key of the sample capture's solved poses (``glossrig extract``;
+#: :func:`glossrig.core.extraction.extract.recorded_geometry`)
+POSES_KEY = b"glossrig.poses"
+
+
+def _provenance_of(meta: dict | None, path, key: bytes | None = None) -> dict | None:
+    """The JSON under ``key`` (default: the provenance's) of a Parquet schema's metadata (None
+    when not recorded)."""
     import json
 
     from glossrig.core.provenance import PARQUET_KEY
 
-    raw = (meta or {}).get(PARQUET_KEY)
+    raw = (meta or {}).get(key or PARQUET_KEY)
     if raw is None:
         return None
     try:
         return json.loads(raw)
     except (ValueError, UnicodeDecodeError) as e:
-        raise InputError(f"unreadable provenance in the schema metadata ({e})", path=path) from None
+        what = "provenance" if key is None else key.decode()
+        raise InputError(f"unreadable {what} in the schema metadata ({e})", path=path) from None
 
 
 def read_provenance(path: str | Path) -> dict | None:
@@ -254,7 +262,9 @@ def write_samples(df: pd.DataFrame, path: str | Path, *, overwrite: bool = True,
     The file's schema metadata records ``glossrig.format = glossrig-samples/1`` and,
     when given, ``glossrig.provenance`` = the JSON of ``provenance`` (what the table was
     made from: :func:`glossrig.core.provenance.provenance`; ``read_samples`` returns it
-    as ``df.attrs["provenance"]``, :func:`read_provenance` alone).
+    as ``df.attrs["provenance"]``, :func:`read_provenance` alone), and where ``df.attrs``
+    holds them the sample capture's solved poses under :data:`POSES_KEY` (``df.attrs["poses"]``
+    when read back).
     With ``overwrite=False`` an existing file is an error."""
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -277,6 +287,10 @@ def write_samples(df: pd.DataFrame, path: str | Path, *, overwrite: bool = True,
         from glossrig.core.provenance import PARQUET_KEY
 
         meta[PARQUET_KEY] = json.dumps(provenance, sort_keys=True, allow_nan=False).encode()
+    if df.attrs.get("poses"):
+        import json
+
+        meta[POSES_KEY] = json.dumps(df.attrs["poses"], sort_keys=True, allow_nan=False).encode()
     table = table.replace_schema_metadata(meta)
     buf = io.BytesIO()
     pq.write_table(table, buf, compression="zstd")

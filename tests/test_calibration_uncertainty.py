@@ -289,3 +289,50 @@ def test_load_inputs_takes_the_poses_a_caller_has_solved(tiny_captures, monkeypa
     assert np.array_equal(given.K, again.K) and given.lamps.keys() == again.lamps.keys()
     with pytest.raises(InputError, match="solved for rotation 0"):
         cu.load_inputs(*args[:3], [90.0], solved={90.0: res})
+
+
+def test_extract_records_the_poses_the_fit_draws_from(tiny_captures, tmp_path, monkeypatch):
+    """``glossrig extract`` stores the sample's solved poses in the samples table; ``glossrig fit``'s
+    calibration draws start from them (:func:`cu.recorded_poses`) - the same inputs as solving the
+    calibration image again, bit for bit - and solve again, saying why, when the camera.json or the
+    calibration image is not the one they came from."""
+    import json
+    import shutil
+
+    from glossrig.core.calibration import poses
+    from glossrig.core.samples import read_samples
+    from tests.conftest import glossrig_cli
+
+    d = tiny_captures
+    out = tmp_path / "samples.parquet"
+    glossrig_cli("extract", d / "sample", "--reference", d / "ref", "--camera", d / "camera.json", "--lamps",
+                 d / "lamps.json", "--out", out, "--no-progress", "--workers", 1)
+    df = read_samples(out)
+    args = (d / "camera.json", d / "lamps.json", d / "sample", [0.0])
+    again = cu.load_inputs(*args)
+    solved, why = cu.recorded_poses(df.attrs["poses"], d / "camera.json", d / "sample")
+    assert solved is not None and set(solved) == {0.0}, why
+
+    def refuse(*a, **k):
+        raise AssertionError("calibrate_capture called although the table records the poses")
+
+    monkeypatch.setattr(poses, "calibrate_capture", refuse)
+    given = cu.load_inputs(*args, solved=solved)
+    for part in ("holder", "cylinder"):
+        for k, v in again.poses[0.0][part].items():
+            assert np.array_equal(given.poses[0.0][part][k], v), (part, k)
+    # another camera.json (one focal length changed): the recorded poses are not this calibration's
+    cam = json.loads((d / "camera.json").read_text())
+    cam2 = tmp_path / "camera.json"
+    cam["fx"] = cam["fx"] * 1.001
+    cam2.write_text(json.dumps(cam))
+    solved, why = cu.recorded_poses(df.attrs["poses"], cam2, d / "sample")
+    assert solved is None and "camera.json" in why
+    # a capture whose calibration image differs (another file in its place)
+    cap = tmp_path / "capture"
+    shutil.copytree(d / "sample", cap)
+    img = cap / df.attrs["poses"]["per_rotation"]["0.0"]["file"]
+    img.write_bytes(img.read_bytes() + b"\0")
+    solved, why = cu.recorded_poses(df.attrs["poses"], d / "camera.json", cap)
+    assert solved is None and "calibration image" in why
+    assert cu.recorded_poses(None, d / "camera.json", d / "sample")[0] is None

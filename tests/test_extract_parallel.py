@@ -58,6 +58,7 @@ def test_two_workers_give_the_table_of_one_and_a_resumed_run_equals_an_uninterru
     assert len(one) > 1000 and set(one.led) == {9, 10}
     pd.testing.assert_frame_equal(one, two, check_exact=True)
     assert one.attrs["dynamic_range"] == two.attrs["dynamic_range"]
+    assert one.attrs["poses"] == two.attrs["poses"] and set(one.attrs["poses"]["per_rotation"]) == {"0.0"}
 
     # interrupted in the parent after two of the four units were stored, workers still running
     fp = fingerprint(options={"test": "parallel resume"})
@@ -81,6 +82,7 @@ def test_two_workers_give_the_table_of_one_and_a_resumed_run_equals_an_uninterru
     resumed = extract_samples(sample, ref, cam, lamps, workers=2, store=store)
     assert len(saved) == 2 and not set(saved) & set(first)          # only the missing units were measured
     pd.testing.assert_frame_equal(resumed, one, check_exact=True)
+    assert resumed.attrs["poses"] == one.attrs["poses"]         # the poses the table records, too
 
 
 @pytest.mark.mitsuba

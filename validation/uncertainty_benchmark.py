@@ -14,8 +14,10 @@ also times the point-model fit (``footprint=False``, with its budget) in the sam
 rotation, for what the footprint-averaged model costs.
 
 ``--calibration-draws N`` (N >= 2) adds the calibration component as ``glossrig fit``
-computes it by default (:mod:`glossrig.core.fitting.calibration_uncertainty`: the poses
-solved again from the capture's calibration images, then N Monte Carlo draws), with
+computes it by default (:mod:`glossrig.core.fitting.calibration_uncertainty`: the poses the
+table records - ``glossrig extract`` stores them - or, for a table made before it did or with
+another camera.json, solved again from the capture's calibration images; then N Monte Carlo
+draws), with
 the camera, lamps and capture the table's provenance names, timed in the same rotation
 as ``budget + calibration``. ``--extract`` also times, once in the same run, the
 extraction that made the table (``extract_samples`` on the captures and calibration of
@@ -90,7 +92,9 @@ def main(argv=None) -> dict:
         t_cal = statistics.median(times["calibration"])
         res.update({"calibration_draws": a.calibration_draws, "calibration_s": times["calibration"],
                     "median_calibration_s": t_cal, "ratio_with_calibration": (t_on + t_cal) / t_off})
-        print(f"the calibration component ({a.calibration_draws} draws, poses solved again): {t_cal:.2f} s; fit with "
+        poses = "recorded by extract" if recorded_poses_usable(df) else "solved again"
+        res["poses"] = poses
+        print(f"the calibration component ({a.calibration_draws} draws, poses {poses}): {t_cal:.2f} s; fit with "
               f"the whole budget {t_on + t_cal:.2f} s, ratio {(t_on + t_cal) / t_off:.3f} to the fit without it")
         c_off, c_on, c_cal = (statistics.median(cpu[x]) for x in (False, True, "calibration"))
         res.update({"cpu_s": {str(k): v for k, v in cpu.items()}, "cpu_ratio_with_calibration": (c_on + c_cal) / c_off})
@@ -122,6 +126,15 @@ def _provenance_files(df) -> dict:
     return out
 
 
+def recorded_poses_usable(df) -> bool:
+    """Whether the table's recorded poses are the ones its calibration would solve
+    (:func:`glossrig.core.fitting.calibration_uncertainty.recorded_poses`)."""
+    from glossrig.core.fitting import calibration_uncertainty as cu
+
+    files = _provenance_files(df)
+    return cu.recorded_poses(df.attrs.get("poses"), files["camera"], files["sample"])[0] is not None
+
+
 def _time_extract(files: dict) -> float:
     from glossrig.core.calibration.intrinsics import load_camera
     from glossrig.core.calibration.lamps import load_lamps
@@ -144,7 +157,9 @@ def _calibration(df, files: dict, channels, draws: int) -> None:
 
         _PARAMS = {c: f.params for c, f in fit_samples(df, channels=channels, footprint=False,
                                                           budget=False).fits.items()}
-    cal = cu.load_inputs(files["camera"], files["lamps"], files["sample"], sorted(df["rotation"].unique()))
+    # the poses the table records when they are this calibration's (glossrig fit does the same), else solved again
+    solved, _ = cu.recorded_poses(df.attrs.get("poses"), files["camera"], files["sample"])
+    cal = cu.load_inputs(files["camera"], files["lamps"], files["sample"], sorted(df["rotation"].unique()), solved=solved)
     cu.calibration_component(df, _PARAMS, cal, n_draws=draws, footprint=True)   # refits as glossrig fit's default
 
 

@@ -233,7 +233,8 @@ def _add_calibration_component(args, df, mfit, log) -> None:
     """Each channel's budget gets the calibration component
     (:mod:`glossrig.core.fitting.calibration_uncertainty`) where the calibration files
     can be found; else its ``omitted`` says why."""
-    from glossrig.core.fitting.calibration_uncertainty import add_calibration, calibration_component, load_inputs
+    from glossrig.core.fitting.calibration_uncertainty import (add_calibration, calibration_component, load_inputs,
+                                                              recorded_poses)
 
     if args.calibration_draws == 0:
         files, why = None, "calibration not included (--calibration-draws 0)"
@@ -247,9 +248,10 @@ def _add_calibration_component(args, df, mfit, log) -> None:
                 f.uncertainty = add_calibration(f.uncertainty, None, why)
         _log.warning(why)
         return
+    solved, poses_from = recorded_poses(df.attrs.get("poses"), files["camera"], files["capture"])
     if log:
-        log(f"calibration component: {args.calibration_draws} draws (poses from {files['capture']})")
-    cal = load_inputs(files["camera"], files["lamps"], files["capture"], sorted(df["rotation"].unique()))
+        log(f"calibration component: {args.calibration_draws} draws (poses of {files['capture']}: {poses_from})")
+    cal = load_inputs(files["camera"], files["lamps"], files["capture"], sorted(df["rotation"].unique()), solved=solved)
     comp = calibration_component(df, {c: f.params for c, f in mfit.fits.items()}, cal,
                                  n_draws=args.calibration_draws, seed=args.seed, weighting=args.weighting,
                                  clip=args.clip, use_weight_column=not args.ignore_weight_column,
@@ -258,4 +260,4 @@ def _add_calibration_component(args, df, mfit, log) -> None:
     for c, f in mfit.fits.items():
         if f.uncertainty is not None:
             f.uncertainty = add_calibration(f.uncertainty, comp[c])
-            f.uncertainty["budget"]["calibration"] = comp["_meta"]
+            f.uncertainty["budget"]["calibration"] = {**comp["_meta"], "poses": poses_from}

@@ -28,6 +28,7 @@ angle differences, which wraps phi correctly and has no pole singularity.
 """
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -676,9 +677,13 @@ def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: di
     parts: dict = {}          # (capture, rotation, led) -> its dynamic-range report
     plotted = []
     held: dict = {}
+    geoms: dict = {}          # (capture, rotation) -> RotationGeometry, as _measured_units solves them
     with _pool(workers, len(order)) as pool:
-        for (i, rot, led), df in zip(order, _measured_units(pool, sources, order, cam, lamps, estimator, store, {},
-                                                             bar)):
+        # the sample's geometries are solved even where a resumed extraction's store holds every unit of a
+        # rotation: the table records their poses (recorded_geometry), as an uninterrupted run's does
+        units = _measured_units(pool, sources, order, cam, lamps, estimator, store, geoms, bar,
+                                solve=[(0, rot) for rot in dict.fromkeys(rot for rot, _ in s_units)])
+        for (i, rot, led), df in zip(order, units):
             if i == 0:
                 held[(rot, led)] = df
                 if plots is not None:
@@ -700,6 +705,8 @@ def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: di
     report = merge_reports([parts[k] for k in sorted(parts, key=lambda k: (k[0] != "sample", k[1], k[2]))])
     log_dynamic_range(report)
     res.attrs["dynamic_range"] = report
+    # the sample's poses, for the fit's calibration draws (calibration_uncertainty.recorded_poses)
+    res.attrs["poses"] = recorded_geometry(cam, {rot: g.poses for (i, rot), g in geoms.items() if i == 0})
     if plots is not None:
         from glossrig.core.extraction.dynamic_range import write_dynamic_range
         from glossrig.core.extraction.extract_plots import write_plots
@@ -707,6 +714,39 @@ def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: di
         write_plots(Path(plots), pd.concat(plotted, ignore_index=True), res)
         write_dynamic_range(Path(plots), report, res)
     return res
+
+
+def recorded_geometry(cam: CameraCalibration, poses: dict) -> dict | None:
+    """The sample capture's solved poses (:func:`glossrig.core.calibration.poses.calibrate_capture`'s
+    result per rotation, JSON-ready) with the sha256 of the camera.json they were solved with:
+    ``glossrig extract`` stores it in the samples table (:func:`glossrig.core.samples.write_samples`)
+    so that ``glossrig fit``'s calibration draws start from the poses the table was measured with
+    instead of solving them again from the capture (about a third of the calibration component's
+    time; validation/uncertainty_coverage.md, section 4). :func:`extract_samples` always solves the
+    sample's geometries, also when a resumed extraction's store holds every unit, so that a resumed
+    table records what an uninterrupted one does. ``--follow`` tables record none (the fit solves
+    them again)."""
+    from glossrig.core.capture import sha256_file
+    from glossrig.core.calibration.poses import geometry_to_json
+
+    have = {float(r): p for r, p in poses.items() if p is not None}
+    if not have or not cam.path:
+        return None
+    return {"camera_sha256": sha256_file(cam.path),
+            "per_rotation": {repr(r): finite_json(geometry_to_json(p)) for r, p in sorted(have.items())}}
+
+
+def finite_json(obj):
+    """``obj`` (JSON-ready) with every non-finite float as None: strict JSON (a pose's edge-fit
+    std is NaN where the fit could not state one; :func:`calibration_uncertainty.rotation_poses`
+    reads None back as NaN)."""
+    if isinstance(obj, dict):
+        return {k: finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [finite_json(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
 
 
 #: how many sample units are measured beyond a unit before its reference unit

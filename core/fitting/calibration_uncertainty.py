@@ -259,6 +259,28 @@ def load_inputs(camera_json, lamps_json, capture_dir, rotations, solved: dict | 
                              camera_views=CameraViews.from_camera_doc(cam.meta))
 
 
+def recorded_poses(doc: dict | None, camera_json, capture_dir) -> tuple[dict | None, str]:
+    """The poses a samples table records (``df.attrs["poses"]``, written by ``glossrig extract``:
+    :func:`glossrig.core.extraction.extract.recorded_geometry`) as :func:`load_inputs`' ``solved``,
+    when they are the poses this calibration would solve: ``camera_json``'s sha256 is the one they
+    were solved with and every calibration image they came from is in ``capture_dir`` with its
+    recorded sha256. Otherwise (None, why) and the poses are solved again from the capture. Also
+    the physically right start for the draws: the poses the table's rows were measured with."""
+    from glossrig.core.capture import sha256_file
+
+    if not doc or not doc.get("per_rotation"):
+        return None, "the samples table records no poses: solved again from the capture"
+    if not Path(camera_json).is_file() or sha256_file(camera_json) != doc.get("camera_sha256"):
+        return None, f"{camera_json} is not the camera.json the table's poses were solved with: solved again"
+    solved = {}
+    for rot, res in doc["per_rotation"].items():
+        img = Path(capture_dir) / str(res.get("file", ""))
+        if not img.is_file() or sha256_file(img) != res.get("sha256"):
+            return None, f"{img} is not the calibration image the table's poses came from: solved again"
+        solved[float(rot)] = res
+    return solved, "recorded by glossrig extract (same camera.json and calibration images)"
+
+
 def rotation_from_vector(w) -> np.ndarray:
     """The rotation matrix of rotation vector ``w`` (axis times angle, radians; Rodrigues'
     formula, ``cv2.Rodrigues``): the project's one conversion for the drawn pose errors
