@@ -15,13 +15,12 @@ reported (``meta.reference_calibration``), not a cause (issue 14, item 4).
 from __future__ import annotations
 
 import contextlib
-from pathlib import Path
 
 import numpy as np
 
 from glossrig.core.errors import InputError
 from glossrig.core.progress import Elapsed
-from glossrig.core.fitting.export import read_fit_provenance
+from glossrig.core.fitting.export import FitFile, read_fit_file
 
 from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes, one_blas_thread
 from glossrig.core.diagnose.data import load_brdf
@@ -35,13 +34,15 @@ from glossrig.core.diagnose.unexplained import retested_cause, unexplained
 
 def load_fit(path):
     """Luminance Ward parameters of a ``glossrig fit`` JSON (read by the one reader,
-    :func:`glossrig.core.fitting.export.read_fit_json`; errors name the file)."""
-    from glossrig.core.fitting.export import read_fit_json
+    :func:`glossrig.core.fitting.export.read_fit_file`; errors name the file)."""
+    return luminance_params(read_fit_file(path))
 
-    p = Path(path)
-    lum = read_fit_json(p).fits.get("luminance")
+
+def luminance_params(ff: FitFile):
+    """The luminance Ward parameters of a read fit file; refuses one without that channel."""
+    lum = ff.fit.fits.get("luminance")
     if lum is None:
-        raise InputError("the fit has no luminance channel (luminance Ward parameters needed)", path=p)
+        raise InputError("the fit has no luminance channel (luminance Ward parameters needed)", path=ff.path)
     return lum.params
 
 
@@ -85,6 +86,10 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     took = clock.__str__          # wall and this process's CPU time since the start
 
     stage = store.get_or_compute if store is not None else (lambda name, compute: compute())
+    # the fit file read once, first: a bad one stops diagnose before the measuring
+    fit_file = read_fit_file(fit) if fit is not None else None
+    if fit_file is not None:
+        luminance_params(fit_file)
     cam = load_camera(camera)
     lp = load_lamps(lamps)
     if reference_brdf is not None and reference_source is None:
@@ -100,11 +105,11 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
             + ", ".join(f"{c} {e['median']:+.1%}" for c, e in cal["effect"].items() if e))
     t = data.table
     fit_check = None
-    if fit is not None:
-        w = load_fit(fit)
+    if fit_file is not None:
+        w = luminance_params(fit_file)
         f = ward_from_angles(t.theta_in, t.theta_out, t.theta_h, t.phi_h, w)
         rel = float(np.nanmedian(np.abs(t.f_thesis / np.maximum(f, 1e-9) - 1)))      # rows with every channel
-        fit_check = check_fit(fit, read_fit_provenance(fit), sample_dir, rel)
+        fit_check = check_fit(fit, fit_file.provenance, sample_dir, rel)
         log(fit_check)
         data.material_fixed = cal is None
     if cal is not None:
