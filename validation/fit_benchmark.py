@@ -118,7 +118,7 @@ def main(argv=None) -> int:
         "",
         f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
         f"load average {load0[0]:.1f} before, {load1[0]:.1f} after (the machine is shared: other jobs ran "
-        "alongside). The fit runs with one BLAS thread (`core.fit.single_threaded_blas`).",
+        "alongside). The fit runs with one BLAS thread (`core.workers.one_blas_thread`).",
         "",
         f"Sample set: thesis rig at scale {a.scale} of `nominal_samples` (1.0 = full sensor resolution), LEDs {leds}, "
         f"rotation(s) {rots} deg: **{n:,} samples** (geometry {t_geo:.0f} s, not timed below). "

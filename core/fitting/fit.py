@@ -73,11 +73,9 @@ Departures from the thesis, and why:
 """
 from __future__ import annotations
 
-import ctypes
 import functools
 import math
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -85,6 +83,7 @@ from typing import Any
 import numpy as np
 
 from glossrig.core.errors import InputError
+from glossrig.core.workers import one_blas_thread
 from glossrig.core.samples import LUMINANCE_WEIGHTS, luminance
 from glossrig.core.models.ward import (ALPHA_MAX, WardGeometry, WardParams, ward_geometry, ward_param_jacobian, ward_parts,
                    ward_unit_lobes)
@@ -121,75 +120,6 @@ STDERR_KIND = "noise-only (per-pixel noise; excludes calibration and model error
 
 _GRID_ALPHAS = np.geomspace(0.002, ALPHA_MAX, 13)
 _GRID_ROTATIONS = np.arange(12) * (np.pi / 12)
-
-
-# ----------------------------------------------------------------------------
-# BLAS threads
-# ----------------------------------------------------------------------------
-# The fit's linear algebra is on tall n x 5 matrices, where BLAS threads gain
-# little; OpenBLAS's spinning threads, however, collapse when the cores are
-# shared (measured: a 70k-sample, four-channel fit took 23 s with NumPy's and
-# SciPy's default OpenBLAS threads next to other jobs on 2 cores, 3 s with one
-# thread). The fit therefore runs with one BLAS thread: through threadpoolctl
-# when it is installed, else by calling OpenBLAS's own set_num_threads in the
-# libraries loaded into the process (Linux /proc/self/maps), else not at all.
-
-_OPENBLAS = None
-
-
-def _openblas_controls():
-    global _OPENBLAS
-    if _OPENBLAS is not None:
-        return _OPENBLAS
-    found = []
-    try:
-        with open("/proc/self/maps") as fh:
-            paths = sorted({ln.split()[-1] for ln in fh if "openblas" in ln.lower() and ".so" in ln})
-    except OSError:
-        paths = []
-    for path in paths:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for suffix in ("", "64_", "_64_", "_"):
-            for prefix in ("scipy_openblas", "openblas"):
-                get = getattr(lib, f"{prefix}_get_num_threads{suffix}", None)
-                put = getattr(lib, f"{prefix}_set_num_threads{suffix}", None)
-                if get is not None and put is not None:
-                    get.restype = ctypes.c_int
-                    put.argtypes = [ctypes.c_int]
-                    found.append((get, put))
-                    break
-            else:
-                continue
-            break
-    _OPENBLAS = found
-    return found
-
-
-@contextmanager
-def single_threaded_blas():
-    """Run the block with one BLAS thread (see the comment above); restores after."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        threadpool_limits = None
-    if threadpool_limits is not None:
-        with threadpool_limits(1, user_api="blas"):
-            yield
-        return
-    import scipy.linalg  # noqa: F401  (loads SciPy's OpenBLAS before the look-up)
-
-    ctl = _openblas_controls()
-    old = [get() for get, _ in ctl]
-    for _, put in ctl:
-        put(1)
-    try:
-        yield
-    finally:
-        for (_, put), n in zip(ctl, old):
-            put(max(1, n))
 
 
 # ----------------------------------------------------------------------------
@@ -929,7 +859,8 @@ def _polish_lm(fun, jac, x0, lb, ub, n_rows, max_nfev):
 
 @functools.wraps(_fit_ward)
 def fit_ward(samples, values, **kw) -> WardFit:
-    with single_threaded_blas():
+    # one BLAS thread: its linear algebra is on tall n x 5 matrices (core.workers.one_blas_thread)
+    with one_blas_thread():
         return _fit_ward(samples, values, **kw)
 
 
