@@ -94,13 +94,20 @@ ANGLE_BINS = 6            # quantile bins per angle of the cells the material mo
 
 
 def _bins(x, n=N_BINS):
+    """:func:`training_bins` with every row training (``x`` finite), and each bin's centre."""
     x = np.asarray(x, float)
-    u = np.unique(x[np.isfinite(x)])
+    idx, _ = training_bins(x, np.ones(len(x), bool), n)
+    values, discrete = _bin_grid(x, n)
+    return idx, values if discrete else 0.5 * (values[1:] + values[:-1])
+
+
+def _bin_grid(xt, n: int) -> tuple[np.ndarray, bool]:
+    """The bins of values ``xt`` (finite): their distinct values when at most DISCRETE (True),
+    else the edges of ``n`` quantile bins (False)."""
+    u = np.unique(xt)
     if u.size <= DISCRETE:
-        return np.searchsorted(u, x), u
-    edges = np.unique(np.quantile(x[np.isfinite(x)], np.linspace(0, 1, n + 1)))
-    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
-    return idx, 0.5 * (edges[1:] + edges[:-1])
+        return u, True
+    return np.unique(np.quantile(xt, np.linspace(0, 1, n + 1))), False
 
 
 def structure_test(x, z, rel=None, n_bins=10) -> dict:
@@ -153,14 +160,13 @@ def training_bins(x, train, n: int = N_BINS) -> tuple[np.ndarray, int]:
     idx = np.full(len(x), -1)
     if xt.size == 0:
         return idx, 0
-    u = np.unique(xt)
-    if u.size <= DISCRETE:
-        j = np.clip(np.searchsorted(u, x[ok]), 0, u.size - 1)
-        idx[ok] = np.where(u[j] == x[ok], j, -1)
-        return idx, int(u.size)
-    edges = np.unique(np.quantile(xt, np.linspace(0, 1, n + 1)))
-    idx[ok] = np.clip(np.searchsorted(edges, x[ok], side="right") - 1, 0, len(edges) - 2)
-    return idx, len(edges) - 1
+    grid, discrete = _bin_grid(xt, n)
+    if discrete:
+        j = np.clip(np.searchsorted(grid, x[ok]), 0, grid.size - 1)
+        idx[ok] = np.where(grid[j] == x[ok], j, -1)
+        return idx, int(grid.size)
+    idx[ok] = np.clip(np.searchsorted(grid, x[ok], side="right") - 1, 0, len(grid) - 2)
+    return idx, len(grid) - 1
 
 
 def bin_factor(idx, nb: int, res, pred, sigma, train) -> np.ndarray:
