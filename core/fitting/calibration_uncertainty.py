@@ -33,8 +33,10 @@ for the existing samples, what changes:
   corner, its centre at ``u + 0.5, v + 0.5``), LED and rotation, so each row's ray is
   cast again through the perturbed intrinsics and poses, intersected with the cylinder
   and its angles recomputed towards the perturbed lamp (the code of
-  :mod:`glossrig.core.extraction.cylinder`). The poses of each rotation are solved once
-  from the capture's calibration image (the capture named in the table's provenance).
+  :mod:`glossrig.core.extraction.cylinder`). The poses of each rotation are those the
+  samples table records (``glossrig extract`` stores the ones its rows were measured with;
+  :func:`recorded_poses`), else solved once from the capture's calibration image (the capture
+  named in the table's provenance).
   A perturbed intrinsic matrix is not applied with the poses held: the poses are solved
   with the intrinsics, and an error of the principal point or focal length is largely
   absorbed by them (a 5 px principal-point error held against fixed poses would move
