@@ -19,6 +19,10 @@ noise). Each cause bends that line in its own way:
 * hot_pixels (pixel space): a pixel's dark current adds the same rate (DN/s)
   under every LED, so a hot pixel stands out against its same-colour
   neighbours at the same place in every LED's rate image.
+
+Each cause is fitted alone; the frame-space causes a single effect makes significant beside
+the one that explains it are then explained away by forward stepwise selection
+(:mod:`.conditional`).
 """
 from __future__ import annotations
 
@@ -34,6 +38,9 @@ from glossrig.core.diagnose.data import FrameData
 CLIP_MARGIN = 0.95          # a DN above CLIP_MARGIN * the effective white is treated as clipped
 HOT_Z = 6.0                 # a hot pixel stands this many sigma above its neighbours in every training LED
 ISOLATED_Z = 3.0            # ... while its 5x5 neighbourhood stays within this many sigma
+#: search bounds of the frame-space causes' parameters (shutter_error's: :func:`shutter_bounds`)
+BOUNDS = {"black_level_offset": (-50.0, 50.0), "sensor_nonlinearity": (-0.1, 0.3),
+          "channel_response": (-0.1, 0.3), "led_drift": (-0.02, 0.02)}
 
 
 def effective_white(dn, white):
@@ -251,7 +258,9 @@ def _frame_cause(fs: FrameSet, name, doc, pname, unit, bounds: tuple[float, floa
 
 
 def frame_causes(fd: FrameData | FrameSet, log=None) -> list[CauseResult]:
-    """Every frame- and pixel-space cause, fitted and scored. ``fd``: the frames, or a
+    """Every frame- and pixel-space cause, fitted and scored, then the frame-space causes the
+    strongest explains blocked (:func:`glossrig.core.diagnose.conditional.explain_away`: forward
+    stepwise selection; the conditional gains in their ``params["conditional"]``). ``fd``: the frames, or a
     :class:`FrameSet` of them already built (its pixel sample and fixed variances are then
     shared with :func:`glossrig.core.diagnose.residuals.frame_structure`). ``log``
     (callable(str)) gets one line per cause as it finishes (progress). Runs with one BLAS
@@ -276,17 +285,23 @@ def _frame_causes(fd: FrameData | FrameSet, log=None) -> list[CauseResult]:
     doc = ("Black level offset: the sensor's true black level differs from the one the raw file states by b DN "
            "(temperature, firmware). Every frame carries b on top of rate * t, so the relative error is largest "
            "in short exposures and dark pixels and dies away with the signal.")
-    add(_frame_cause(fs, "black_level_offset", doc, "b_dn", "DN", (-50.0, 50.0),
+    add(_frame_cause(fs, "black_level_offset", doc, "b_dn", "DN", BOUNDS["black_level_offset"],
                      lambda b: (lambda i, M: _linear_pred(fs, i, M, offset=b))))
     doc = ("Compressive sensor response (full-well and ADC non-linearity, EMVA 1288 sec. 8): the signal x above "
            "black is read as x (1 - c x / (white - black)); the deficit grows with the signal level and is the "
            "same at any exposure time, so long and short exposures of one pixel disagree in proportion to DN.")
-    add(_frame_cause(fs, "sensor_nonlinearity", doc, "c", "relative compression at white", (-0.1, 0.3),
+    add(_frame_cause(fs, "sensor_nonlinearity", doc, "c", "relative compression at white",
+                     BOUNDS["sensor_nonlinearity"],
                      lambda c: (lambda i, M: _linear_pred(fs, i, M, c=c))))
     add(channel_response_cause(fs, out[-1]))
     add(shutter_cause(fs))
     add(_drift_cause(fs))
     add(hot_pixel_cause(fd))
+    from glossrig.core.diagnose.conditional import explain_away
+
+    explain_away(fs, out)
+    if log is not None:
+        log(f"  frame-space causes conditioned on the strongest (forward stepwise) ({took})")
     return out
 
 
@@ -307,7 +322,7 @@ def channel_response_cause(fs: FrameSet, common: CauseResult) -> CauseResult:
            "its own threshold (two parameters more), otherwise it is blocked by it. A per-channel gain alone is "
            "not seen in the raw series (each pixel's rate absorbs it) and cancels in the sample / reference "
            "ratio.")
-    bounds = (-0.1, 0.3)
+    bounds = BOUNDS["channel_response"]
     # each colour's pixels of each LED, sliced once: (Z, T, W, ok)
     parts = [[(fs.Z[i][:, s], fs.T[i][:, s], 1.0 / fs.V[i][:, s], fs.ok[i][:, s], s)
               for s in (fs.colour[i] == k for k in range(3))] for i in range(len(fs.Z))]
@@ -360,10 +375,15 @@ def shutter_cause(fs: FrameSet) -> CauseResult:
            "microseconds). DN - black = rate (t + delta): the relative error delta / t is largest at the "
            "shortest times and the same at every signal level and pixel, unlike a black offset (additive in DN, "
            "largest for dark pixels) or a non-linearity (a function of the DN level).")
-    tmin = float(min(np.min(t) for t in fs.T))
     return _frame_cause(fs, "shutter_error", doc, "delta_s", "seconds added to every nominal exposure",
-                        (-0.5 * tmin, 2.0 * tmin),
+                        shutter_bounds(fs),
                         lambda d: (lambda i, M: _linear_pred(fs, i, M, gain=(fs.T[i] + d) / fs.T[i])))
+
+
+def shutter_bounds(fs: FrameSet) -> tuple[float, float]:
+    """Search bounds of the shutter error delta: -0.5 to 2 times the shortest exposure time."""
+    tmin = float(min(np.min(t) for t in fs.T))
+    return (-0.5 * tmin, 2.0 * tmin)
 
 
 def _drift_cause(fs: FrameSet) -> CauseResult:
@@ -371,10 +391,11 @@ def _drift_cause(fs: FrameSet) -> CauseResult:
            "taken (warm-up, temperature), a gain 1 + a tau with tau the frame's time from the middle of the "
            "sequence. Every pixel of a frame shares the gain, whatever its signal level: the residual follows "
            "capture order, not DN. Fitted per LED (a in 1/min).")
-    bounds = (-0.02, 0.02)
+    bounds = BOUNDS["led_drift"]
     base_err = ext_err = 0.0
     gains = []
     per_led: dict[str, list[float]] = {}
+    fold_est = []           # per fold: the slope of every LED sequence, in FrameSet order
     for fold in fs.folds():
         tr, te = fold
         e0 = _score(fs, lambda i, M: _linear_pred(fs, i, M), fold)
@@ -390,9 +411,11 @@ def _drift_cause(fs: FrameSet) -> CauseResult:
         base_err += e0 / 2
         ext_err += e1 / 2
         gains.append((e0 - e1) / e0)
+        fold_est.append([float(a) for a in slopes])
         for i, a in enumerate(slopes):
             per_led.setdefault(str(fs.led[i]), []).append(a)
-    params = {"gain_slope_per_min": {k: float(np.mean(v)) for k, v in per_led.items()}, "unit": "1/min"}
+    params = {"gain_slope_per_min": {k: float(np.mean(v)) for k, v in per_led.items()}, "unit": "1/min",
+              "fold_estimates": fold_est}
     stderr = {"gain_slope_per_min": {k: float(abs(v[0] - v[1]) / 2) for k, v in per_led.items()}}
     mag = float(max(abs(np.mean(v)) for v in per_led.values()))
     r = CauseResult("led_drift", "frames", doc, params, stderr, ext_err, base_err, gains, len(fs.Z),
