@@ -30,7 +30,7 @@ def _ward(a, r, p):
     return EB._ward(a, r, p)
 
 
-def _blocks(rig, noise: str):
+def _blocks(rig, noise: str, p: WardParams = P):
     """The design's rows per LED as :func:`EB.budget_and_bound` builds them: (LED, lamp, pixels,
     angles, pixel counts, eq. 4.82 weights), and the noise model."""
     from glossrig.core.fitting.fit import peak_weight
@@ -40,7 +40,7 @@ def _blocks(rig, noise: str):
     for i in LEDS:
         lamp = np.asarray(rig.led(i).position, float)
         a_all = cov.direction_angles(px, lamp, half=True)
-        rows, w = _rows_for(a_all, a_all["lit"], P, ROWS, 3000)
+        rows, w = _rows_for(a_all, a_all["lit"], p, ROWS, 3000)
         a = {k: v[rows] for k, v in a_all.items()}
         m = peak_weight(*(np.radians(a[k]) for k in ("theta_in", "phi_in", "theta_out", "phi_out")))
         out.append((i, lamp, px.subset(rows), a, w, m))
@@ -234,13 +234,21 @@ def test_design_errors_cli_states_a_usable_budget(tmp_path, capsys, rig):
     assert "--pose-rot" in capsys.readouterr().err
 
 
-def test_intrinsics_term_equals_the_spread_of_nonlinear_refits(rig):
+#: A lobe wide against the scale-0.05 footprint (the point model's refit of its footprint-averaged
+#: data stays within FOOTPRINT_REFIT_DEPARTURE): the budget's calibration refits are the point model's.
+WIDE = WardParams(rho_d=0.0518, rho_s=0.0069, alpha_x=0.2, alpha_y=0.12, lobe_rotation=2.47)
+
+
+@pytest.mark.parametrize("lobe, refits", [(P, "footprint"), (WIDE, "point")])
+def test_intrinsics_term_equals_the_spread_of_nonlinear_refits(rig, lobe, refits):
     """With a camera calibration's views the calibration component holds the intrinsics
-    drawn as ``glossrig fit`` draws them (EB.CalibrationDraws). Its nominal geometry is the
-    design's own (the pixels' rays cast again: the same angles to 1e-6 degree), and its
-    spread over the draws (Gauss-Newton refits) equals that of this test's own nonlinear
-    refits (SciPy's trust region, residuals assembled here with the pipeline's weights) of
-    the nominal data against each drawn geometry: the same 12 draws, so no sampling error
+    drawn as ``glossrig fit`` draws them (EB.CalibrationDraws, the lamps solved again under
+    each). Its nominal geometry is the design's own (the pixels' rays cast again: the same
+    angles to 1e-6 degree), and its spread over the draws (Gauss-Newton refits) equals that of
+    this test's own nonlinear refits (SciPy's trust region, residuals assembled here with the
+    pipeline's weights) of the nominal data against each drawn geometry - the footprint-averaged
+    model of each row's kernel for sample_2_6, as narrow as a scale-0.05 footprint, the point
+    model for a wide lobe, as the budget decides (EB._Sums.intrinsics_variance): the same 12 draws, so no sampling error
     between the two; both converge to ~1e-8 of the parameters, against shifts of 1e-4 to
     1e-2 of them, and eq. 4.82's weights come from the drawn angles in both (the pipeline's
     table holds those): ratio in [0.99, 1.01]. (A linearisation of the same draws
@@ -251,39 +259,55 @@ def test_intrinsics_term_equals_the_spread_of_nonlinear_refits(rig):
     from glossrig.core.calibration.intrinsics import board_points
     from glossrig.core.fitting.calibration_uncertainty import CameraViews
     from glossrig.core.fitting.fit import peak_weight
+    from glossrig.core.fitting.footprint_model import footprint_eval, sample_footprint
+    from glossrig.core.models.ward import ward_geometry
 
     views = _board_views()
     cv = CameraViews(obj=board_points((9, 6), 25.0), rvecs=[v[0] for v in views], tvecs=[v[1] for v in views],
                      rms_px=0.15)
     zero = dict(ONLY, pose_rot_deg=0.0, pose_t_mm=0.0)
-    b = EB.design_budget(rig, [("s", P)], rotations=ROTS, led_ids=LEDS, scale=SCALE, noise="relative:0.03",
+    b = EB.design_budget(rig, [("s", lobe)], rotations=ROTS, led_ids=LEDS, scale=SCALE, noise="relative:0.03",
                          fisher_rows=ROWS, lamp_std_mm=0.0, camera_views=cv, intrinsics_draws=12, seed=3, **zero)["s"]
     assert "12 draws" in b["stated"]["intrinsics"]
-    blocks, nm = _blocks(rig, "relative:0.03")
+    blocks, nm = _blocks(rig, "relative:0.03", lobe)
     px = cov.pixel_geometry(rig, SCALE)
     intr = EB.CalibrationDraws(rig, px, cv, 12, 3)
-    drawn_by_led = {}
-    for i, _lamp, sub, a, _w, _m in blocks:
+    # the footprint-averaged model where the budget refitted it (the lobe as narrow as a footprint
+    # at this scale): each row's kernel from the design's slope Jacobians, held at the nominal geometry
+    assert b["calibration_refits"] == refits
+    footprint = refits == "footprint"
+    drawn_by_led, fps = {}, {}
+    for i, lamp, sub, a, _w, _m in blocks:
         nominal, drawn = intr.angles(i)
         index = {int(k): j for j, k in enumerate(px.v * 100000 + px.u)}
         rows = np.array([index[int(k)] for k in sub.v * 100000 + sub.u])
         for k in ("theta_in", "theta_out", "theta_h"):
             np.testing.assert_allclose(np.degrees(nominal[k][rows]), a[k], atol=1e-6)
         drawn_by_led[i] = [{k: np.degrees(v[rows]) for k, v in ad.items()} for ad in drawn]
-    x0 = np.array([getattr(P, k) for k in fi.PARAMS])
+        a_all = cov.direction_angles(px, lamp, half=True)
+        fps[i] = {r: sample_footprint(EB.pixel_slope_jacobian(px, a_all, r)[rows]) for r in ROTS}
+
+    def model(a, r, x, fp):
+        if not footprint:
+            return _ward(a, r, WardParams(*x))[0]
+        geo = ward_geometry(*(np.radians(a[k]) for k in ("theta_in", "theta_out", "theta_h")),
+                            np.radians(np.mod(a["phi_h"] - r, 360.0)))
+        return footprint_eval(geo, fp, x)
+
+    x0 = np.array([getattr(lobe, k) for k in fi.PARAMS])
+    data = {(i, r): model(a, r, x0, fps[i][r]) for i, _lamp, _sub, a, _w, _m in blocks for r in ROTS}
     shifts = []
     for d in range(12):
         def fun(x, d=d):
-            p = WardParams(*x)
             out = []
             for i, _lamp, _sub, a, w, _m in blocks:
                 ad = drawn_by_led[i][d]
                 # eq. 4.82's weight from the angles the pipeline has: the drawn ones
                 md = peak_weight(*(np.radians(ad[k]) for k in ("theta_in", "phi_in", "theta_out", "phi_out")))
                 for r in ROTS:
-                    y = _ward(a, r, P)[0]
-                    s = _ratio_sigma(nm, y, a, rig)
-                    res = np.sqrt(w) * md * (_ward(ad, r, p)[0] - y) / s
+                    y = data[(i, r)]
+                    s = _ratio_sigma(nm, _ward(a, r, lobe)[0], a, rig)
+                    res = np.sqrt(w) * md * (model(ad, r, x, fps[i][r]) - y) / s
                     out.append(np.where(np.isfinite(res), res, 0.0))
             return np.concatenate(out)
         shifts.append(least_squares(fun, x0, x_scale=np.abs(x0) + 1e-3, xtol=1e-14, ftol=1e-14, gtol=1e-14).x - x0)
@@ -292,6 +316,7 @@ def test_intrinsics_term_equals_the_spread_of_nonlinear_refits(rig):
         got = b["components"]["calibration"][name]
         assert sd[k] > 0 and got > 0
         assert 0.99 < got / sd[k] < 1.01, (name, got, sd[k])
+
 
 def test_sensor_only_noise_is_the_merge_s_own_and_the_led_term_adds_in_quadrature():
     """The second figure is the HDR merge's sensor noise itself (what extract writes as a row's
@@ -310,10 +335,11 @@ def test_sensor_only_noise_is_the_merge_s_own_and_the_led_term_adds_in_quadratur
 
 
 def test_calibration_draws_move_every_lamp_by_one_shift(rig):
-    """CalibrationDraws' lamp shift (cu.LAMP_DRAW): each draw's angles for every LED are the
-    pixels' rays through that draw's camera towards the LED moved by the shift common to every
-    LED (non-zero) plus the LED's own, and the camera draws do not depend on the lamps' (their
-    own random streams)."""
+    """CalibrationDraws' further lamp error (cu.LAMP_DRAW): each draw's angles for every LED are
+    the pixels' rays through that draw's camera towards the LED as the lamp calibration solves
+    it under that camera, moved by the shift common to every LED (non-zero) plus the LED's own;
+    the camera draws and the lamps solved under them do not depend on that error (their own
+    random streams)."""
     from test_calibration_uncertainty import _board_views
 
     from glossrig.core.calibration.intrinsics import board_points
@@ -339,9 +365,62 @@ def test_calibration_draws_move_every_lamp_by_one_shift(rig):
         pos = np.asarray(rig.led(led).position, float)
         f = np.asarray(cu.LAMP_COMMON_FRACTION)
         own = 0.7 * np.sqrt(1 - f) * np.random.default_rng([5, 2, led]).standard_normal((3, 3))
-        for (K, d, poses), shift, o, got in zip(with_lamps.draws, with_lamps.lamp_shifts, own, drawn):
+        resolved = with_lamps.resolved_shifts(led)
+        # the same lamp calibration under the same camera draws: apart by what those are (see above)
+        assert np.all(np.abs(resolved - without.resolved_shifts(led)) <= 1e-3 * resolved.std(axis=0) + 1e-12)
+        for (K, d, poses), res, shift, o, got in zip(with_lamps.draws, resolved, with_lamps.lamp_shifts, own, drawn):
             want = cu.row_angles(with_lamps.cal, with_lamps.u, with_lamps.v, np.full(n, led), np.zeros(n), K=K,
-                                 dist=d, poses=poses, lamps={led: pos + shift + o})
+                                 dist=d, poses=poses, lamps={led: pos + res + shift + o})
             ok = want["valid"]
             np.testing.assert_allclose(got["theta_in"][ok], want["theta_in"][ok], atol=1e-12)
             assert np.linalg.norm(shift) > 0
+
+
+def test_lamps_are_solved_again_with_the_geometry_they_are_calibrated_with(rig):
+    """CalibrationDraws solves each lamp again under the drawn geometry, as ``glossrig calibrate
+    lamps`` would with that camera (lamps._solve_lamp on the sheet's values at the same pixels),
+    so the lamps' error goes with the geometry's. Checked on a geometry error whose effect is
+    known exactly: the holder and the cylinder turned together by 0.2 degree about the cylinder's
+    axis (a common pose error of both captures). In the holder frame the camera and every ray
+    then turn by -0.2 degree about the axis and the cylinder maps onto itself, so the lamp
+    calibration must return its nominal solution turned by the same rotation, and the sample's
+    angles at the design's pixels, with that lamp, must equal the nominal ones. Exact in exact
+    arithmetic (the same pixels and values select the same highlight and diffuse samples), the
+    bound is the diffuse refinement's stopping rule: least_squares stops when a step is below
+    xtol = 1e-8 of the scaled parameters (azimuth / 1e-3 rad, height / 0.1 mm, gain / 0.01, a norm
+    of ~1e3), i.e. an azimuth step of ~1e-8 rad, 3e-6 mm at the LED's 300 mm: 1e-5 mm against a
+    turn of 300 mm x 0.2 degree = 1.05 mm, and 1e-5 mm / 300 mm ~ 3e-8 rad, bounded by 1e-7 rad,
+    for the angles (measured when written: 3e-11 mm and 4e-13 rad); the lamps held where they were
+    (drawn independently of the geometry, as before) move theta_in by 3.8e-3 rad."""
+    from test_calibration_uncertainty import _board_views
+
+    from glossrig.core.calibration.intrinsics import board_points
+    from glossrig.core.fitting import calibration_uncertainty as cu
+
+    views = _board_views()
+    cv = cu.CameraViews(obj=board_points((9, 6), 25.0), rvecs=[v[0] for v in views], tvecs=[v[1] for v in views],
+                        rms_px=0.15)
+    px = cov.pixel_geometry(rig, SCALE)
+    draws = EB.CalibrationDraws(rig, px, cv, 2, 5)
+    p = draws.cal.poses[0.0]
+    (Rh, th), (Rc, tc) = (p["holder"]["R"], p["holder"]["t"]), (p["cylinder"]["R"], p["cylinder"]["t"])
+    axis = draws.cal.poses[0.0]["holder"]["R"].T @ Rc @ np.array([0.0, 1.0, 0.0])     # holder frame
+    turn = cu.rotation_from_vector(math.radians(0.2) * axis)
+    turned = ((Rh @ turn, th), (Rc @ turn, tc))
+    n = draws.u.size
+    for led in LEDS:
+        nominal = draws.solve_lamp(led, draws.cal.K, draws.cal.dist, ((Rh, th), (Rc, tc)))
+        solved = draws.solve_lamp(led, draws.cal.K, draws.cal.dist, turned)
+        expected = turn.T @ nominal
+        assert np.linalg.norm(expected - nominal) > 1.0                 # the turn moves the lamp 1.05 mm
+        assert np.linalg.norm(solved - expected) < 1e-5, (led, solved, expected)
+        pos = np.asarray(rig.led(led).position, float)
+        args = (draws.u, draws.v, np.full(n, led), np.zeros(n))
+        a0 = cu.row_angles(draws.cal, *args, lamps={led: pos})
+        a1 = cu.row_angles(draws.cal, *args, poses={0.0: turned}, lamps={led: pos + solved - nominal})
+        held = cu.row_angles(draws.cal, *args, poses={0.0: turned}, lamps={led: pos})
+        ok = a0["valid"] & a1["valid"] & held["valid"]
+        assert ok.sum() > 1000
+        for k in ("theta_in", "theta_out", "theta_h"):
+            assert np.max(np.abs(a1[k][ok] - a0[k][ok])) < 1e-7, (led, k)
+        assert np.max(np.abs(held["theta_in"][ok] - a0["theta_in"][ok])) > 1e-3

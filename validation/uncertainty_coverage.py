@@ -491,11 +491,16 @@ def design_comparison(results: list[dict], leds: str, rotations: str, scale: flo
     from glossrig.core.design.placement import parse_materials
     from glossrig.core.rig import default_rig_path, load_rig
 
+    from glossrig.core.fitting.fit import canonical
+
     named = [m for m in MATERIALS if not m.startswith("ward:")]
     rig = load_rig(default_rig_path())
+    # in canonical form (alpha_x >= alpha_y), as the fit reports and the errors are taken: the same
+    # BRDF, so the same budget, its alpha_x and alpha_y named as the errors' (sample_0_6 has them swapped)
+    materials = [(label, canonical(p)[0]) for label, p in parse_materials(",".join(named))]
 
     def predict(cam: Path | None) -> dict:
-        return design_budget(rig, parse_materials(",".join(named)), rotations=[float(r) for r in rotations.split(",")],
+        return design_budget(rig, materials, rotations=[float(r) for r in rotations.split(",")],
                              led_ids=[int(i) for i in leds.split(",")], scale=scale, led_aperture=0.0,
                              angular_u=0.0,    # as the study states it for the fit: the twin's reference is Lambertian
                              camera_views=None if cam is None else CameraViews.from_camera_doc(load_camera(cam).meta))

@@ -31,15 +31,18 @@ component's variance:
   4.3.3, fig. 4.12) after neighbour correction and patch normalisation (eq. 4.32-4.50),
   :data:`GAIN_REL` per block; the misfit ``glossrig fit`` measures with its cluster-robust
   sandwich over the same blocks;
-* ``calibration`` - the LEDs' positions, :data:`~glossrig.core.calibration.lamps.LAMP_STD_MM`
-  per holder axis, mostly common to the LEDs, as the fit draws them
-  (:data:`glossrig.core.fitting.calibration_uncertainty.LAMP_DRAW`). Without camera views
+* ``calibration`` - the LEDs' positions. Without camera views
+  :data:`~glossrig.core.calibration.lamps.LAMP_STD_MM` per holder axis, mostly common to the
+  LEDs, as the fit draws them (:data:`glossrig.core.fitting.calibration_uncertainty.LAMP_DRAW`),
   linearised (``df = f`` at the moved lamps ``- f``: the common part summed over every LED
-  and rotation before squaring, the LED's own part per LED); with them drawn in :class:`CalibrationDraws` and
-  refitted, because for a lobe narrower than the lamp error's angle the response is not
-  linear (brushed_original at scale 0.1, 4 LEDs: the one-sided difference gave alpha_y
-  0.5 % at 0.5 mm and 2.0 % at 1 mm, four times for twice the shift, where the fit's
-  refitted draws of round 1's lamps gave 4.2 %);
+  and rotation before squaring, the LED's own part per LED). With camera views the lamps are
+  solved again in :class:`CalibrationDraws` as ``glossrig calibrate lamps`` solves them
+  (thesis 4.3.4) under each draw's camera and poses, so that their error goes with the
+  geometry's it comes from, and refitted (a lobe narrower than the lamp error's angle does
+  not respond linearly: brushed_original at scale 0.1, 4 LEDs: the one-sided difference gave
+  alpha_y 0.5 % at 0.5 mm and 2.0 % at 1 mm); drawing them independently of the camera
+  predicted 2.5 times the lobe-rotation error the twin's calibrations made for the nearly
+  isotropic sample_0_6 and sample_2_6 (validation/uncertainty_coverage.md, section 0);
   the sample's pose against camera and lamps per rotation, :data:`POSE_ROT_DEG` about
   each holder axis and :data:`POSE_T_MM` along each at scale 0.25, in proportion to the
   pixel size at other scales (the sample's points and normals moved rigidly; these figures
@@ -56,10 +59,12 @@ component's variance:
 
 Combined: root sum of squares. Assumptions: the linearisation (errors small against the
 lobe width; not for the intrinsics draws, which are refitted), the point model (the fit's
-footprint model changes the weights' effect little), no peak clipping (eq. 6.5), the green
+footprint model changes the weights' effect little; the intrinsics draws refit the
+footprint-averaged model where the fit would, :meth:`_Sums.intrinsics_variance`), no peak clipping (eq. 6.5), the green
 channel's noise (in the weights a factor common to all rows, which cancels; the
 luminance's noise is ~0.8 of it), the rigid-motion model of the pose error (a pixel's ray
-is not re-intersected), and lamps drawn independently of the geometry. Without camera views
+is not re-intersected), and, without camera views, lamps drawn independently of the geometry
+(with them, the lamp capture's pose noise taken as the sample capture's). Without camera views
 the rigid pose figures fall short for rho_s on the twin: its calibration error there is
 ~3-5 times what they give, most of it the intrinsics' error acting at second order, which
 the refitted draws reproduce (validation/uncertainty_coverage.md, section 3).
@@ -119,30 +124,61 @@ _ANGLES = ("theta_in", "phi_in", "theta_out", "phi_out", "theta_h", "phi_h")
 INTRINSICS_ROWS = 20_000
 
 
+#: The specular sample the lamps are calibrated with (thesis 4.3.4: a transparency sheet;
+#: scenes/materials), whose capture :class:`CalibrationDraws` simulates at the design's pixels.
+LAMP_SHEET = "transparency_sheet"
+#: Pixels of the sheet per LED that a lamp solve of :class:`CalibrationDraws` uses (a fixed random
+#: subset; ``calibrate lamps`` solves its draws on up to 20 000): the data are noise-free, so the
+#: subset changes only which pixels the diffuse fit weighs. Measured at scale 0.1 (LED 8, round 0's
+#: camera, 6 draws): the solved lamp shifts agree with 20 000 pixels' to 0.018 mm, against shifts
+#: of standard deviation 0.24-0.99 mm per axis, at a quarter of the CPU.
+LAMP_SHEET_ROWS = 5000
+
+
 class CalibrationDraws:
-    """The calibration's intrinsics and lamps drawn as ``glossrig fit``'s calibration component
-    draws them (:mod:`glossrig.core.fitting.calibration_uncertainty`, GUM-S1): each draw re-runs the
-    camera calibration on its views' corners moved by noise of its reprojection RMS
-    (:func:`~glossrig.core.fitting.calibration_uncertainty.camera_draw`, intrinsics and
+    """The calibration's intrinsics and lamps drawn as the calibrations make their errors, GUM-S1:
+    each draw re-runs the camera calibration on its views' corners moved by noise of its
+    reprojection RMS (:func:`~glossrig.core.fitting.calibration_uncertainty.camera_draw`, intrinsics and
     distortion together), re-solves the holder's and cylinder's marker PnP with the drawn
     camera (the markers' corners as the nominal camera sees them), and casts every pixel's
     ray again through it (:func:`~glossrig.core.fitting.calibration_uncertainty.row_angles`).
     The pipeline then takes each pixel's value for the angles of the drawn geometry: the
     data are the nominal angles' values, the model is evaluated at the drawn ones. This is
     the intrinsics' effect that the poses do not absorb (a rigid pose figure cannot carry
-    it; validation/uncertainty_coverage.md, section 3). Each draw also moves the lamps by
-    ``lamp_std_mm`` per holder axis, split as the fit splits it into a shift common to every LED
-    and the LED's own (normal draws of their own random streams, so the intrinsics' draws do
-    not depend on them). ``views``: a
-    :class:`~glossrig.core.fitting.calibration_uncertainty.CameraViews` of a calibration at
-    the design's image size."""
+    it; validation/uncertainty_coverage.md, section 3).
 
-    def __init__(self, rig, px: cov.PixelGeometry, views, n_draws: int, seed: int, lamp_std_mm: float = 0.0):
+    **The lamps are calibrated with the same camera** (``glossrig calibrate lamps``, thesis
+    4.3.4: the highlight's mirror rays and the diffuse pattern of a specular sheet on the
+    cylinder, :func:`glossrig.core.calibration.lamps._solve_lamp`), so their error is mostly the
+    drawn geometry's own (lamps.py's docstring: with the true geometry the twin's lamps come out
+    within 0.1-0.2 mm, with the calibrated one 0.8-2.3 mm off) and it partly cancels the
+    geometry's effect on the sample's angles. Each draw therefore solves every lamp again, as
+    the lamp calibration would, from the sheet's nominal values (:data:`LAMP_SHEET`'s extended
+    Ward, lit by the LED, at the design's pixels, at most :data:`LAMP_SHEET_ROWS` of them) under the
+    drawn camera and poses,
+    the lamp capture's holder moved by its own pose noise (``pose_rot_deg`` about each holder
+    axis, ``pose_t_mm`` along each: the marker edge fit's, independent of the sample capture's),
+    and moves the lamp by the solution's change from the nominal geometry's solution. Measured
+    on the coverage study's eight scale-0.1 calibrations (validation/uncertainty_coverage.md,
+    section 0): the lamps solved so under each round's own calibrated camera reproduce the
+    actual lamp errors' y component (correlation 0.95; x 0.17, where the lamp capture's pose
+    dominated), and the parameter errors these draws predict match those the calibrations
+    actually made, where drawing lamps independently of the camera over-predicted the lobe
+    rotation of nearly isotropic lobes 2.5-fold. ``lamp_std_mm`` adds a further lamp error per
+    holder axis independent of the geometry (default 0), split as the fit splits it into a shift
+    common to every LED and the LED's own (:data:`~glossrig.core.fitting.calibration_uncertainty.LAMP_DRAW`;
+    normal draws of their own random streams, so the camera draws do not depend on them).
+    ``views``: a :class:`~glossrig.core.fitting.calibration_uncertainty.CameraViews` of a
+    calibration at the design's image size."""
+
+    def __init__(self, rig, px: cov.PixelGeometry, views, n_draws: int, seed: int, lamp_std_mm: float = 0.0,
+                 pose_rot_deg: float = 0.0, pose_t_mm: float = 0.0):
         import cv2
 
         from glossrig.core.calibration.markers import cylinder_marker_corners, holder_marker_corners
         from glossrig.core.errors import InputError
         from glossrig.core.fitting import calibration_uncertainty as cu
+        from glossrig.core.models.materials import parse_material
 
         if n_draws < 2:
             raise InputError(f"the intrinsics need at least 2 draws, got {n_draws}")
@@ -160,15 +196,72 @@ class CalibrationDraws:
                                         camera_views=views)
         rng = np.random.default_rng(seed)
         self.draws = [cu.draw_calibration(self.cal, rng, ("intrinsics",))[:3] for _ in range(n_draws)]
-        # the lamps (cu.LAMP_DRAW): per draw a shift common to every LED and each LED's own, from streams of
-        # their own (so the camera draws do not depend on them)
+        # the lamp capture's own holder pose error per draw (its own stream)
+        z = np.random.default_rng([seed, 3]).standard_normal((n_draws, 2, 3))
+        self.lamp_capture_moves = [(cu.rotation_from_vector(math.radians(pose_rot_deg) * a), pose_t_mm * b)
+                                   for a, b in z]
+        # a further lamp error (cu.LAMP_DRAW): per draw a shift common to every LED and each LED's own,
+        # from streams of their own (so the camera draws do not depend on them)
         self.lamp_std, self.seed = float(lamp_std_mm), seed
         self.common_fraction = np.asarray(cu.LAMP_COMMON_FRACTION)
         self.lamp_shifts = self.lamp_std * np.sqrt(self.common_fraction) * \
             np.random.default_rng([seed, 1]).standard_normal((n_draws, 3))
         self.rig, self.px = rig, px
+        sheet = parse_material(LAMP_SHEET).ward
+        assert sheet is not None                # a Ward material (scenes/materials)
+        self.sheet = sheet
+        self._resolved: dict[int, np.ndarray] = {}
+        self._sheets: dict[int, tuple] = {}
         # pixel centres as row_angles casts them (u + 0.5: a Bayer block's corner there)
         self.u, self.v = px.u.astype(float) - 0.5, px.v.astype(float) - 0.5
+
+    def _sheet(self, led: int):
+        """The lamp calibration's data for ``led`` at the nominal geometry: the sheet's pixels (a
+        fixed subset of at most :data:`LAMP_SHEET_ROWS`) and their values (BRDF x cos / d^2, eq. 4.79)."""
+        if led in self._sheets:
+            return self._sheets[led]
+        lamp = np.asarray(self.rig.led(led).position, float)
+        a = cov.direction_angles(self.px, lamp, half=True)
+        idx = np.flatnonzero(a["lit"] & (a["cos_in"] > 0) & (a["cos_out"] > 0))
+        if idx.size > LAMP_SHEET_ROWS:
+            idx = np.sort(np.random.default_rng([self.seed, 4, int(led)]).choice(idx, LAMP_SHEET_ROWS, replace=False))
+        f = _ward({k: v[idx] for k, v in a.items()}, 0.0, self.sheet)[0]
+        values = f * a["cos_in"][idx] / (a["dist_in"][idx] * 1e-3) ** 2
+        self._sheets[led] = (self.px.u[idx].astype(float), self.px.v[idx].astype(float), values,
+                             float(np.hypot(lamp[0], lamp[2])))
+        return self._sheets[led]
+
+    def solve_lamp(self, led: int, K, dist, poses, move=None) -> np.ndarray:
+        """The lamp position ``glossrig calibrate lamps`` finds (holder frame, mm) from the sheet's
+        nominal values of ``led`` (:meth:`_sheet`) under the camera ``K, dist`` and rotation 0's
+        ``poses`` ((R_hold, t_hold), (R_cyl, t_cyl)), camera frame), the holder moved by ``move``
+        = (R about its own axes, t) where given (as :func:`~glossrig.core.fitting.calibration_uncertainty._draw_pose`)."""
+        from glossrig.core.calibration.lamps import _solve_lamp
+        from glossrig.core.calibration.poses import relative_to_holder
+        from glossrig.core.extraction.cylinder import surface_samples
+
+        u, v, values, distance = self._sheet(led)
+        (Rh, th), (Rc, tc) = poses
+        if move is not None:
+            Rh, th = Rh @ move[0], th + move[1]
+        R_cyl, t_cyl = relative_to_holder(Rh, th, Rc, tc)
+        s = surface_samples(K, dist, self.cal.size, Rh, th, R_cyl, t_cyl, self.cal.radius, self.cal.height,
+                            pixels=(u, v))
+        # surface_samples keeps the rays that meet the sample, in order: find them by pixel
+        width = float(self.cal.size[0]) + 1.0
+        keep = np.isin(v * width + u, s.v * width + s.u)
+        return _solve_lamp(s.points, s.normals, s.camera_centre, values[keep], distance, t_cyl, s.axis, True)[0]
+
+    def resolved_shifts(self, led: int) -> np.ndarray:
+        """``(n_draws, 3)``: each draw's lamp solution (:meth:`solve_lamp` under the draw's camera,
+        poses and the lamp capture's own pose move) minus the nominal geometry's (mm)."""
+        if led not in self._resolved:
+            p = self.cal.poses[0.0]
+            nominal = self.solve_lamp(led, self.cal.K, self.cal.dist,
+                                      ((p["holder"]["R"], p["holder"]["t"]), (p["cylinder"]["R"], p["cylinder"]["t"])))
+            self._resolved[led] = np.array([self.solve_lamp(led, K, d, poses[0.0], mv) - nominal
+                                            for (K, d, poses), mv in zip(self.draws, self.lamp_capture_moves)])
+        return self._resolved[led]
 
     def angles(self, led: int) -> tuple[dict, list[dict]]:
         """The nominal and each draw's BRDF angles (radians, rotation 0) of every pixel of the
@@ -187,8 +280,9 @@ class CalibrationDraws:
         nominal = deg(cu.row_angles(self.cal, *args, lamps=lamps))
         own = self.lamp_std * np.sqrt(1 - self.common_fraction) * \
             np.random.default_rng([self.seed, 2, int(led)]).standard_normal((len(self.draws), 3))
-        drawn = [deg(cu.row_angles(self.cal, *args, K=K, dist=d, poses=p, lamps={int(led): lamp + shift + o}))
-                 for (K, d, p), shift, o in zip(self.draws, self.lamp_shifts, own)]
+        drawn = [deg(cu.row_angles(self.cal, *args, K=K, dist=d, poses=p,
+                                   lamps={int(led): lamp + resolved + shift + o}))
+                 for (K, d, p), resolved, shift, o in zip(self.draws, self.resolved_shifts(led), self.lamp_shifts, own)]
         return nominal, drawn
 
 
@@ -267,7 +361,9 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
     from glossrig.core.fitting.uncertainty import DEFAULT_LED_APERTURE, blur_effect, led_slope_variance
     from glossrig.core.models.ward import ward_geometry, ward_parts
 
-    lamp_std = LAMP_STD_MM if lamp_std_mm is None else float(lamp_std_mm)
+    # with camera views the lamps are solved again under each camera draw (CalibrationDraws): no
+    # independent lamp error unless one is stated
+    lamp_std = (LAMP_STD_MM if camera_views is None else 0.0) if lamp_std_mm is None else float(lamp_std_mm)
     rot0, t0 = (POSE_ROT_DEG, POSE_T_MM) if camera_views is None else (POSE_NOISE_ROT_DEG, POSE_NOISE_T_MM)
     pose_rot_deg = rot0 * POSE_SCALE / scale if pose_rot_deg is None else float(pose_rot_deg)
     pose_t_mm = t0 * POSE_SCALE / scale if pose_t_mm is None else float(pose_t_mm)
@@ -283,12 +379,14 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
     rot_rad = math.radians(pose_rot_deg)
     moves = [(f"pose_rot{k}", rotation_from_vector(rot_rad * e), None) for k, e in enumerate(np.eye(3))] + \
             [(f"pose_t{k}", None, pose_t_mm * e) for k, e in enumerate(np.eye(3))]
-    intr = CalibrationDraws(rig, px, camera_views, intrinsics_draws, seed, lamp_std) if camera_views is not None else None
+    intr = CalibrationDraws(rig, px, camera_views, intrinsics_draws, seed, lamp_std, pose_rot_deg, pose_t_mm) \
+        if camera_views is not None else None
     acc = {label: _Sums() for label, _ in materials}
     for i in led_ids:
         lamp = np.asarray(rig.led(i).position, float)
         a_all = cov.direction_angles(px, lamp, half=True)
         a_intr = intr.angles(i) if intr is not None else None
+        slope_jac: dict[float, np.ndarray] = {}         # per rotation, for the intrinsics refits' footprint
         for label, p in materials:
             s = acc[label]
             rows, w = _rows_for(a_all, a_all["lit"], p, fisher_rows, 3000)
@@ -328,7 +426,9 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
                     # the refits' rows thinned evenly to INTRINSICS_ROWS in all, each standing for the rest
                     step = max(1, math.ceil(rows.size * len(led_ids) * len(rotations) / INTRINSICS_ROWS))
                     sw = (w / np.where(ok, s_tab, 1.0) ** 2 * ok)[::step] * step
-                    s.add_intrinsics_rows(a_intr, rows[::step], r, p, sw)
+                    if r not in slope_jac:
+                        slope_jac[r] = pixel_slope_jacobian(px, a_all, r)
+                    s.add_intrinsics_rows(a_intr, rows[::step], r, p, sw, slope_jac[r][rows[::step]])
                 s.ang_f += JW.T @ f
                 for k, c in enumerate((a["cos_in"], a["cos_out"])):
                     s.ang_fg[k] += JW.T @ (f * (1.0 - c))
@@ -350,8 +450,9 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
               "led_aperture_rad": aperture,
               "intrinsics": (f"{intrinsics_draws} draws of the camera calibration (parametric bootstrap of its "
                              f"{len(camera_views.rvecs)} views, reprojection RMS {camera_views.rms_px:g} px), poses "
-                             f"re-solved from the markers, the lamps drawn with {lamp_std:g} mm per axis (cu.LAMP_DRAW), "
-                             "refitted" if camera_views is not None else
+                             f"re-solved from the markers, the lamps solved again by the lamp calibration under each "
+                             f"draw ({LAMP_SHEET}, its capture's holder moved by the pose noise) plus {lamp_std:g} mm "
+                             "per axis independent of the geometry (cu.LAMP_DRAW), refitted" if camera_views is not None else
                              "not drawn (no camera calibration views given): carried by the pose figures")}
     out, bound = {}, {}
     for label, p in materials:
@@ -368,14 +469,16 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
             var["calibration"] += (angular_u * (Ci @ vec)) ** 2
         for comp, sd, vec in s.b.values():
             var[comp] += (sd * (Ci @ vec)) ** 2
+        refits = None
         if s.intr_rows:
             var["calibration"] += s.intrinsics_variance(p)
+            refits = "footprint" if s.footprint_refits else "point"
         var["calibration"] += (albedo_u * np.array([p.rho_d, p.rho_s, 0.0, 0.0, 0.0])) ** 2
         comb = np.sqrt(sum(var.values()))
         out[label] = {"params": p.as_dict(), "n_samples": s.n_rows,
                       "components": {c: _by_param(np.sqrt(v), mask) for c, v in var.items()},
                       "combined": _by_param(comb, mask), "relative": _by_param(comb / fi.error_scale(p), mask),
-                      "stated": stated}
+                      "calibration_refits": refits, "stated": stated}
     return out, bound
 
 
@@ -391,11 +494,13 @@ class _Sums:
         self.ang_fg, self.ang_f, self.ang_g, self.ang_w = np.zeros((2, 5)), np.zeros(5), np.zeros(2), 0.0
         # the intrinsics draws' rows (CalibrationDraws): [(nominal angles, values, weights, drawn angles per draw)]
         self.intr_rows: list[tuple] = []
+        self.footprint_refits = False           # whether intrinsics_variance refitted the footprint model
 
-    def add_intrinsics_rows(self, a_intr, rows, rotation: float, p: WardParams, table_weight) -> None:
+    def add_intrinsics_rows(self, a_intr, rows, rotation: float, p: WardParams, table_weight, slope_jac) -> None:
         """Keep one (LED, rotation)'s rows for :meth:`intrinsics_variance`: the nominal and
         drawn angles (azimuths turned by the sample rotation, thesis eq. 4.62), the nominal
-        data (the point model of ``p``) and the table's weights (pixel count / s^2)."""
+        data (the point model of ``p``), the table's weights (pixel count / s^2) and the rows'
+        slope Jacobians (:func:`pixel_slope_jacobian`)."""
         nominal, drawn = a_intr
         r = np.radians(rotation)
 
@@ -407,33 +512,85 @@ class _Sums:
 
         nom = take(nominal)
         y = _ward({k: np.degrees(v) for k, v in nom.items()}, 0.0, p)[0]
-        self.intr_rows.append((nom, y, table_weight, [take(a) for a in drawn]))
+        self.intr_rows.append((nom, y, table_weight, [take(a) for a in drawn], slope_jac))
 
     def intrinsics_variance(self, p: WardParams) -> np.ndarray:
         """Variance of the fitted parameters over the calibration draws (:class:`CalibrationDraws`:
-        intrinsics and the lamps' common shift; GUM-S1): the nominal
-        data refitted at each draw's angles by the pipeline's weighted least squares (the
+        intrinsics, poses re-solved with them, the lamps solved again under them; GUM-S1): the
+        nominal data refitted at each draw's angles by the pipeline's weighted least squares (the
         Gauss-Newton refit of :mod:`glossrig.core.fitting.calibration_uncertainty`, eq.
         4.81-4.82, warm-started), minus the same refit at the nominal angles; a row a draw
         loses (its ray misses, a direction below the horizon) is left out of that refit. Not
         linearised: at a calibration's noise the drawn angle errors (~0.1 degree) move rho_s
         and the alphas at second order as much as at first (a blur-like bias), which a
-        linearisation misses (tests/test_design_budget.py)."""
-        from glossrig.core.fitting.calibration_uncertainty import _refit, _reported
+        linearisation misses (tests/test_design_budget.py).
+
+        **The footprint, as the fit decides it** (:func:`~glossrig.core.fitting.calibration_uncertainty.calibration_component`
+        with ``footprint``): the data are the lobe averaged over each row's footprint (a 2x2 Bayer
+        block's luminance kernel over the pixel's slope Jacobian,
+        :func:`~glossrig.core.fitting.footprint_model.footprint_eval`), and where the point
+        model's refit of them departs from the lobe by more than
+        :data:`~glossrig.core.fitting.calibration_uncertainty.FOOTPRINT_REFIT_DEPARTURE`
+        every refit is of the footprint-averaged model (the footprint held at the nominal
+        geometry), as ``glossrig fit`` fits such a lobe; otherwise the point model of the
+        point data. For a lobe as narrow as a footprint the footprint model's parameters answer
+        the calibration far more strongly: brushed_original at scale 0.1 (alpha_y 0.0106), its
+        twin measurements' rows refitted at the true against the calibrated geometry moved
+        alpha_y by -8.4 % and -12.1 % (rounds 1 and 3) with the footprint model, -1.5 % and
+        -2.9 % with the point model; the fits' actual errors were -8.4 % and -11.5 %."""
+        from glossrig.core.fitting.calibration_uncertainty import _point_model_departs, _refit, _reported
+        from glossrig.core.fitting.footprint_model import footprint_eval, sample_footprint
+        from glossrig.core.models.ward import ward_geometry
 
         nom = {k: np.concatenate([e[0][k] for e in self.intr_rows]) for k in _ANGLES}
         y = np.concatenate([e[1] for e in self.intr_rows])
         sw = np.concatenate([e[2] for e in self.intr_rows])
+        fp_all = sample_footprint(np.concatenate([e[4] for e in self.intr_rows]))
         ok0 = np.isfinite(nom["theta_in"]) & np.isfinite(y) & (sw > 0)
         x0 = solver_params(p)
-        base = _refit({k: v[ok0] for k, v in nom.items()}, y[ok0], sw[ok0], x0, "mirror", None)
+        n0 = {k: v[ok0] for k, v in nom.items()}
+        fp0 = fp_all.take(np.flatnonzero(ok0))
+        y_fp = footprint_eval(ward_geometry(n0["theta_in"], n0["theta_out"], n0["theta_h"], n0["phi_h"]), fp0, x0,
+                              log_alpha=True)
+        point = _refit(n0, y_fp, sw[ok0], x0, "mirror", None)
+        use_fp = _point_model_departs(_reported(point, x0), x0)
+        self.footprint_refits = use_fp
+        data = y_fp if use_fp else y[ok0]
+        base = _refit(n0, data, sw[ok0], x0, "mirror", None, fp=fp0 if use_fp else None)
         shifts = []
         for d in range(len(self.intr_rows[0][3])):
             ang = {k: np.concatenate([e[3][d][k] for e in self.intr_rows]) for k in _ANGLES}
-            ok = ok0 & np.isfinite(ang["theta_in"])
-            x = _refit({k: v[ok] for k, v in ang.items()}, y[ok], sw[ok], base, "mirror", None)
+            ok = np.isfinite(ang["theta_in"][ok0])
+            x = _refit({k: v[ok0][ok] for k, v in ang.items()}, data[ok], sw[ok0][ok], base, "mirror", None,
+                       fp=fp0.take(np.flatnonzero(ok)) if use_fp else None)
             shifts.append(_reported(x, x0) - _reported(base, x0))
         return np.asarray(shifts).var(axis=0, ddof=1)
+
+
+def pixel_slope_jacobian(px: cov.PixelGeometry, a: dict, rotation: float) -> np.ndarray:
+    """``(n, 2, 2)`` d(slope)/d(u, v) of the half vector at every design pixel for one LED's
+    angles ``a`` (degrees, :func:`glossrig.core.design.coverage.direction_angles`) at sample
+    ``rotation`` (degrees), as ``glossrig extract``'s table gives it to the fit
+    (:func:`glossrig.core.models.footprint.slope_jacobian` over the 2x2 Bayer blocks, 2 px apart,
+    whose corners are the even pixels): each pixel takes its block's; NaN where the block's
+    corner pixel does not see the sample (no footprint: the point model)."""
+    import pandas as pd
+
+    from glossrig.core.models.footprint import slope_jacobian
+
+    u, v = np.asarray(px.u, int), np.asarray(px.v, int)
+    corner = np.flatnonzero((u % 2 == 0) & (v % 2 == 0))
+    table = pd.DataFrame({"u": u[corner], "v": v[corner], "led": 0, "rotation": 0.0,
+                          "theta_h": np.radians(a["theta_h"][corner]),
+                          "phi_h": np.radians(np.mod(a["phi_h"][corner] - rotation, 360.0))})
+    Jb = slope_jacobian(table)
+    bu, bv = u // 2, v // 2
+    grid = np.full((bv.max() + 1, bu.max() + 1), -1, np.int64)
+    grid[bv[corner], bu[corner]] = np.arange(corner.size)
+    at = grid[bv, bu]
+    out = np.full((u.size, 2, 2), np.nan)
+    out[at >= 0] = Jb[at[at >= 0]]
+    return out
 
 
 def budget_text(budget: dict) -> str:
