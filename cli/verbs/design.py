@@ -207,8 +207,9 @@ def add_errors_arguments(p) -> None:
                    help="budget: residual relative gain of one LED x rotation image (default: "
                         "glossrig.core.design.error_budget.GAIN_REL, 0.005)")
     p.add_argument("--lamp-std", type=float, default=None, metavar="MM",
-                   help="budget: lamp position standard uncertainty per axis, mm (default 0.5, what "
-                        "`calibrate lamps` states)")
+                   help="budget: lamp position standard uncertainty per axis, mm, independent of the camera (default: "
+                        "glossrig.core.calibration.lamps.LAMP_STD_MM without --camera; 0 with --camera, whose draws "
+                        "solve the lamps again as `calibrate lamps` would)")
     p.add_argument("--pose-rot", type=float, default=None, metavar="DEG",
                    help="budget: sample pose rotation uncertainty per axis, degrees (default 0.05 x 0.25 / --scale)")
     p.add_argument("--pose-t", type=float, default=None, metavar="MM",
