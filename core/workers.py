@@ -18,10 +18,13 @@ import os
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 __all__ = ["usable_cores", "resolve_workers", "WorkerPool", "process_pool", "ordered_results", "single_threaded",
-           "one_blas_thread", "release_memory"]
+           "one_blas_thread", "in_one_blas_thread", "release_memory"]
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
 
 
 def usable_cores() -> int:
@@ -51,12 +54,22 @@ def one_blas_thread():
     squares (k <= ~15) and dot products of such vectors, where BLAS threads gain nothing and
     OpenBLAS's spinning threads cost much when the cores are shared. Measured on this 2-core
     machine under load: a 70k-sample, four-channel fit took 23 s with the default OpenBLAS
-    threads, 3 s with one; ``r @ r`` of 53 000 rows 8.2 ms of CPU against 0.02 ms; the fit's
-    calibration component (24 draws x 4 channels, 20 000 rows) 6.0 CPU-s against 1.9
+    threads, 3 s with one; diagnose's ``r @ r`` of 53 000 rows 8.2 ms of CPU against 0.02 ms; the
+    fit's calibration component (24 draws x 4 channels, 20 000 rows) 6.0-6.2 CPU-s against 1.9-2.2
     (validation/uncertainty_coverage.md, section 4). One thread also leaves the other core free."""
     from threadpoolctl import threadpool_limits
 
     return threadpool_limits(limits=1)
+
+
+def in_one_blas_thread(f: Callable[_P, _R]) -> Callable[_P, _R]:
+    """Decorator: each call of ``f`` runs under :func:`one_blas_thread` (its signature kept)."""
+    @functools.wraps(f)
+    def run(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+        with one_blas_thread():
+            return f(*args, **kwargs)
+
+    return run
 
 
 def single_threaded() -> None:

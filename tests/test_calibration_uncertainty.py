@@ -335,4 +335,16 @@ def test_extract_records_the_poses_the_fit_draws_from(tiny_captures, tmp_path, m
     img.write_bytes(img.read_bytes() + b"\0")
     solved, why = cu.recorded_poses(df.attrs["poses"], d / "camera.json", cap)
     assert solved is None and "calibration image" in why
+    # a rig file edited since (the marker corners the draws pair with the image corners come from it)
+    cap2 = tmp_path / "capture2"
+    shutil.copytree(d / "sample", cap2)
+    rig = cap2 / "rig.toml"
+    rig.write_text(rig.read_text() + "\n# edited\n")
+    solved, why = cu.recorded_poses(df.attrs["poses"], d / "camera.json", cap2)
+    assert solved is None and "rig file" in why
+    # no record, a damaged record, and rotations the record lacks (solved again, and said)
     assert cu.recorded_poses(None, d / "camera.json", d / "sample")[0] is None
+    solved, why = cu.recorded_poses({"per_rotation": [1, 2]}, d / "camera.json", d / "sample")
+    assert solved is None and "unreadable" in why
+    solved, why = cu.recorded_poses(df.attrs["poses"], d / "camera.json", d / "sample", [0.0, 90.0])
+    assert set(solved) == {0.0} and "90 not recorded" in why

@@ -248,10 +248,11 @@ def _add_calibration_component(args, df, mfit, log) -> None:
                 f.uncertainty = add_calibration(f.uncertainty, None, why)
         _log.warning(why)
         return
-    solved, poses_from = recorded_poses(df.attrs.get("poses"), files["camera"], files["capture"])
+    rotations = sorted(df["rotation"].unique())
+    solved, poses_from = recorded_poses(df.attrs.get("poses"), files["camera"], files["capture"], rotations)
     if log:
         log(f"calibration component: {args.calibration_draws} draws (poses of {files['capture']}: {poses_from})")
-    cal = load_inputs(files["camera"], files["lamps"], files["capture"], sorted(df["rotation"].unique()), solved=solved)
+    cal = load_inputs(files["camera"], files["lamps"], files["capture"], rotations, solved=solved)
     comp = calibration_component(df, {c: f.params for c, f in mfit.fits.items()}, cal,
                                  n_draws=args.calibration_draws, seed=args.seed, weighting=args.weighting,
                                  clip=args.clip, use_weight_column=not args.ignore_weight_column,

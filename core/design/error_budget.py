@@ -83,6 +83,7 @@ from glossrig.core.design import coverage as cov
 from glossrig.core.design import fisher as fi
 from glossrig.core.fitting.fit import solver_params
 from glossrig.core.models.ward import WardParams
+from glossrig.core.workers import in_one_blas_thread
 
 #: Residual relative gain of one LED x rotation image after neighbour correction and patch
 #: normalisation: the twin's per-frame LED jitter (0.5 %, thesis 4.3.3), taken whole.
@@ -343,6 +344,9 @@ def design_budget(rig, materials, **kw) -> dict[str, dict]:
     return budget_and_bound(rig, materials, **kw)[0]
 
 
+# one BLAS thread (core.workers.one_blas_thread): the refits of the calibration draws and the lamps'
+# re-solves are the fit's small least squares
+@in_one_blas_thread
 def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float = 0.25, noise: str = "hdr",
                      fisher_rows: int = 20000, gain_rel: float = GAIN_REL, lamp_std_mm: float | None = None,
                      pose_rot_deg: float | None = None, pose_t_mm: float | None = None,

@@ -158,14 +158,19 @@ def joint_fit(fs, terms: list[Term], start: list[np.ndarray], fold, fresh: int |
                     trial[k][b] = v
                     return sum(_ss(fs, terms, trial, i, cols, tr[i] & fs.ok[i]) for i, cols in scope)
                 if rnd == 0 and k == fresh:
-                    th[k][b] = _scalar_fit(cost, (lo, hi), t.grid_n)[0]
+                    v = _scalar_fit(cost, (lo, hi), t.grid_n)[0]
                 else:
                     # the tolerance scales with the grid step: scipy's default (1e-5 absolute) is a
                     # fifth of a shutter error's grid step (delta ~ 1e-5 s)
                     step = (hi - lo) / (t.grid_n - 1)
                     a, z = max(lo, th[k][b] - LOCAL_STEPS * step), min(hi, th[k][b] + LOCAL_STEPS * step)
-                    th[k][b] = float(minimize_scalar(cost, bounds=(a, z), method="bounded",
-                                                     options={"xatol": 1e-3 * step}).x)
+                    v = float(minimize_scalar(cost, bounds=(a, z), method="bounded",
+                                              options={"xatol": 1e-3 * step}).x)
+                # kept only where it lowers the training cost: neither the grid (which need not hold the
+                # null value) nor bounded Brent (which never evaluates the current value) guarantees it,
+                # and every sweep must leave the joint fit at least as good as the start
+                if cost(v) <= cost(th[k][b]):
+                    th[k][b] = v
     return th
 
 

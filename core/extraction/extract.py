@@ -706,7 +706,7 @@ def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: di
     log_dynamic_range(report)
     res.attrs["dynamic_range"] = report
     # the sample's poses, for the fit's calibration draws (calibration_uncertainty.recorded_poses)
-    res.attrs["poses"] = recorded_geometry(cam, {rot: g.poses for (i, rot), g in geoms.items() if i == 0})
+    res.attrs["poses"] = recorded_geometry(ms, cam, {rot: g.poses for (i, rot), g in geoms.items() if i == 0})
     if plots is not None:
         from glossrig.core.extraction.dynamic_range import write_dynamic_range
         from glossrig.core.extraction.extract_plots import write_plots
@@ -716,23 +716,25 @@ def extract_samples(sample_dir, reference_dir, cam: CameraCalibration, lamps: di
     return res
 
 
-def recorded_geometry(cam: CameraCalibration, poses: dict) -> dict | None:
+def recorded_geometry(man: Manifest, cam: CameraCalibration, poses: dict) -> dict | None:
     """The sample capture's solved poses (:func:`glossrig.core.calibration.poses.calibrate_capture`'s
-    result per rotation, JSON-ready) with the sha256 of the camera.json they were solved with:
-    ``glossrig extract`` stores it in the samples table (:func:`glossrig.core.samples.write_samples`)
-    so that ``glossrig fit``'s calibration draws start from the poses the table was measured with
-    instead of solving them again from the capture (about a third of the calibration component's
-    time; validation/uncertainty_coverage.md, section 4). :func:`extract_samples` always solves the
-    sample's geometries, also when a resumed extraction's store holds every unit, so that a resumed
-    table records what an uninterrupted one does. ``--follow`` tables record none (the fit solves
-    them again)."""
+    result per rotation, JSON-ready) with what they were solved from: the sha256 of the camera.json
+    and of the capture's rig file (the marker corners the draws pair with the image corners come
+    from it; the calibration images' own sha256 are in each result). ``glossrig extract`` stores it
+    in the samples table (:func:`glossrig.core.samples.write_samples`) so that ``glossrig fit``'s
+    calibration draws start from the poses the table was measured with instead of solving them
+    again from the capture (:func:`glossrig.core.fitting.calibration_uncertainty.recorded_poses`;
+    the solve was more than half of the calibration component's CPU time,
+    validation/uncertainty_coverage.md, section 4). :func:`extract_samples` (also under
+    ``--follow``) always solves the sample's geometries, also when a resumed extraction's store
+    holds every unit, so that a resumed table records what an uninterrupted one does."""
     from glossrig.core.capture import sha256_file
     from glossrig.core.calibration.poses import geometry_to_json
 
     have = {float(r): p for r, p in poses.items() if p is not None}
     if not have or not cam.path:
         return None
-    return {"camera_sha256": sha256_file(cam.path),
+    return {"camera_sha256": sha256_file(cam.path), "rig_sha256": sha256_file(man.rig_path()),
             "per_rotation": {repr(r): finite_json(geometry_to_json(p)) for r, p in sorted(have.items())}}
 
 

@@ -80,7 +80,6 @@ Welch-Satterthwaite degrees of freedom carry it).
 """
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -89,7 +88,7 @@ import numpy as np
 
 from glossrig.core.calibration.lamps import LAMP_STD_MM as _LAMP_STD_MM
 from glossrig.core.errors import InputError
-from glossrig.core.workers import one_blas_thread
+from glossrig.core.workers import in_one_blas_thread
 
 PARAM_NAMES = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
 SOURCES = ("intrinsics", "poses", "lamps", "albedo")
@@ -263,26 +262,42 @@ def load_inputs(camera_json, lamps_json, capture_dir, rotations, solved: dict | 
                              camera_views=CameraViews.from_camera_doc(cam.meta))
 
 
-def recorded_poses(doc: dict | None, camera_json, capture_dir) -> tuple[dict | None, str]:
+def recorded_poses(doc, camera_json, capture_dir, rotations=None) -> tuple[dict | None, str]:
     """The poses a samples table records (``df.attrs["poses"]``, written by ``glossrig extract``:
     :func:`glossrig.core.extraction.extract.recorded_geometry`) as :func:`load_inputs`' ``solved``,
-    when they are the poses this calibration would solve: ``camera_json``'s sha256 is the one they
-    were solved with and every calibration image they came from is in ``capture_dir`` with its
-    recorded sha256. Otherwise (None, why) and the poses are solved again from the capture. Also
-    the physically right start for the draws: the poses the table's rows were measured with."""
-    from glossrig.core.capture import sha256_file
+    where they are the poses this calibration would solve: ``camera_json`` and ``capture_dir``'s
+    rig file have the sha256 they were solved with, and for each rotation the capture's manifest
+    names the same calibration image, which is there with its recorded sha256. Otherwise (None,
+    why): every pose is solved again from the capture. The physically right start for the draws
+    too: the poses the table's rows were measured with. ``rotations`` (the table's): those the
+    record lacks are solved again, and the returned text says so. Metadata of another structure
+    (damaged, or written by another version) is not used: solved again, and said."""
+    from glossrig.core.capture import load_manifest, sha256_file
 
-    if not doc or not doc.get("per_rotation"):
+    if not doc:
         return None, "the samples table records no poses: solved again from the capture"
-    if not Path(camera_json).is_file() or sha256_file(camera_json) != doc.get("camera_sha256"):
+    try:
+        per = {float(k): v for k, v in doc["per_rotation"].items()}
+        files = {r: str(v["file"]) for r, v in per.items()}
+        want = {"camera": doc["camera_sha256"], "rig": doc["rig_sha256"]}
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        return None, f"the samples table's pose record is unreadable ({type(e).__name__}: {e}): solved again"
+    if not Path(camera_json).is_file() or sha256_file(camera_json) != want["camera"]:
         return None, f"{camera_json} is not the camera.json the table's poses were solved with: solved again"
-    solved = {}
-    for rot, res in doc["per_rotation"].items():
-        img = Path(capture_dir) / str(res.get("file", ""))
-        if not img.is_file() or sha256_file(img) != res.get("sha256"):
+    man = load_manifest(capture_dir)
+    if sha256_file(man.rig_path()) != want["rig"]:
+        return None, f"{man.rig_path()} is not the rig file the table's poses were solved with: solved again"
+    for rot, f in files.items():
+        named = [im for im in man.select("calibration") if float(im.rotation) == rot]
+        img = Path(capture_dir) / f
+        if len(named) != 1 or named[0].file != f or not img.is_file() or sha256_file(img) != named[0].sha256 \
+                or named[0].sha256 != per[rot].get("sha256"):
             return None, f"{img} is not the calibration image the table's poses came from: solved again"
-        solved[float(rot)] = res
-    return solved, "recorded by glossrig extract (same camera.json and calibration images)"
+    lacking = sorted({float(r) for r in rotations or ()} - set(per))
+    how = "recorded by glossrig extract (same camera.json, rig file and calibration images)"
+    if lacking:
+        how += f"; rotations {', '.join(f'{r:g}' for r in lacking)} not recorded: solved again"
+    return per, how
 
 
 def rotation_from_vector(w) -> np.ndarray:
@@ -468,9 +483,14 @@ def _reported(x, x_ref) -> np.ndarray:
     return np.array([x[0], x[1], math.exp(x[2]), math.exp(x[3]), rot])
 
 
-def _calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: int = 24, max_rows: int = 20_000,
-                           seed: int = 0, weighting: str = "mirror", clip: float | None = None,
-                           use_weight_column: bool = True, sources=SOURCES, footprint: bool = False) -> dict:
+# one BLAS thread (core.workers.one_blas_thread): the refits solve 20 000 x 5 least squares; measured
+# 1.9-2.2 CPU-s with one thread against 6.0-6.2 with OpenBLAS's default threads on the 2-core machine
+# under load (24 draws x 4 channels, the same draws; u within 3e-5 relative: reductions in another
+# order; /tmp/s8/calcheck.py)
+@in_one_blas_thread
+def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: int = 24, max_rows: int = 20_000,
+                          seed: int = 0, weighting: str = "mirror", clip: float | None = None,
+                          use_weight_column: bool = True, sources=SOURCES, footprint: bool = False) -> dict:
     """The calibration component (module docstring): ``{channel: {param: {"u": u, "dof":
     n_draws - 1}}}`` for the channels of ``fits`` (channel -> WardFit or WardParams, in
     canonical form), plus ``"_meta"`` (draws, rows, sources, shift samples). ``df``: the
@@ -562,16 +582,6 @@ def _calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: i
 #: sensitivity to the calibration equals the footprint model's to that relative order
 #: (the bias itself cancels in the draws' differences, module docstring).
 FOOTPRINT_REFIT_DEPARTURE = 0.05
-
-
-
-@functools.wraps(_calibration_component)
-def calibration_component(df, fits: dict, cal: CalibrationInputs, **kw) -> dict:
-    # one BLAS thread (core.workers.one_blas_thread): the refits solve 20 000 x 5 least squares;
-    # measured 1.9 CPU-s with one thread against 6.0 with OpenBLAS's default threads on the 2-core
-    # machine (24 draws x 4 channels, the same draws; u within 3e-5 relative: reductions in another order)
-    with one_blas_thread():
-        return _calibration_component(df, fits, cal, **kw)
 
 
 def _point_model_departs(point_reported: np.ndarray, x0: np.ndarray) -> bool:

@@ -73,7 +73,6 @@ Departures from the thesis, and why:
 """
 from __future__ import annotations
 
-import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -83,7 +82,7 @@ from typing import Any
 import numpy as np
 
 from glossrig.core.errors import InputError
-from glossrig.core.workers import one_blas_thread
+from glossrig.core.workers import in_one_blas_thread
 from glossrig.core.samples import LUMINANCE_WEIGHTS, luminance
 from glossrig.core.models.ward import (ALPHA_MAX, WardGeometry, WardParams, ward_geometry, ward_param_jacobian, ward_parts,
                    ward_unit_lobes)
@@ -553,7 +552,9 @@ def _arrays(samples) -> dict[str, np.ndarray]:
         raise InputError(f"samples lack the column {e.args[0]!r}") from None
 
 
-def _fit_ward(samples, values, *, channel: str = "values", weighting: str = "mirror",
+# one BLAS thread: its linear algebra is on tall n x 5 matrices (core.workers.one_blas_thread)
+@in_one_blas_thread
+def fit_ward(samples, values, *, channel: str = "values", weighting: str = "mirror",
              sample_weight=None, clip: float | None = None, clip_model: bool = True,
              starts: Iterable[WardParams] | None = None, grid: bool = True, n_starts: int = 4,
              refine_samples: int = 50_000, grid_samples: int = 10_000, seed: int = 0,
@@ -857,11 +858,6 @@ def _polish_lm(fun, jac, x0, lb, ub, n_rows, max_nfev):
     return OptimizeResult(x=x, cost=cost, nfev=nfev, status=status)
 
 
-@functools.wraps(_fit_ward)
-def fit_ward(samples, values, **kw) -> WardFit:
-    # one BLAS thread: its linear algebra is on tall n x 5 matrices (core.workers.one_blas_thread)
-    with one_blas_thread():
-        return _fit_ward(samples, values, **kw)
 
 
 class _Stall:
