@@ -199,8 +199,6 @@ def geometry_draws(camera_json, specular_dir, units: list[dict], refine: bool = 
     result where the caller has it (those rotations are not solved again,
     :func:`~glossrig.core.fitting.calibration_uncertainty.load_inputs`).
     """
-    from glossrig.core.calibration.poses import relative_to_holder
-    from glossrig.core.extraction.cylinder import surface_samples
     from glossrig.core.fitting.calibration_uncertainty import draw_calibration, intrinsics_drawn, load_inputs
 
     cal = load_inputs(camera_json, None, specular_dir, sorted({float(x["rotation"]) for x in units}), solved=solved)
@@ -215,17 +213,32 @@ def geometry_draws(camera_json, specular_dir, units: list[dict], refine: bool = 
     for _ in range(n_draws):
         K, dist, poses, *_ = draw_calibration(cal, rng, ("intrinsics", "poses"))
         for x in sub:
-            (Rh, th), (Rc, tc) = poses[float(x["rotation"])]
-            R_cyl, t_cyl = relative_to_holder(Rh, th, Rc, tc)
-            uc, vc = x["u"] + 0.5, x["v"] + 0.5
-            s = surface_samples(K, dist, cal.size, Rh, th, R_cyl, t_cyl, cal.radius, cal.height, pixels=(uc, vc))
-            # surface_samples keeps the rays that meet the sample, in order: find them by pixel
-            W = float(cal.size[0]) + 1.0
-            keep = np.isin(vc * W + uc, s.v * W + s.u)
-            lamp, *_ = _solve_lamp(s.points, s.normals, s.camera_centre, x["values"][keep], x["distance"], t_cyl,
-                                   s.axis, refine)
-            out[int(x["led"])].append(lamp)
+            out[int(x["led"])].append(lamp_under_geometry(
+                K, dist, cal.size, poses[float(x["rotation"])], cal.radius, cal.height,
+                x["u"] + 0.5, x["v"] + 0.5, x["values"], x["distance"], refine))
     return {k: np.asarray(v) for k, v in out.items()}, intrinsics_drawn(cal)
+
+
+def lamp_under_geometry(K, dist, size, poses, radius: float, height: float, u, v, values, distance,
+                        refine: bool = True) -> np.ndarray:
+    """The lamp position (holder frame, mm) :func:`_solve_lamp` finds from a sheet's ``values`` at
+    pixel centres ``u, v`` when the camera is ``K, dist`` (image ``size``) and the poses are
+    ``((R_hold, t_hold), (R_cyl, t_cyl))`` (camera frame): the rays cast again through that
+    geometry and intersected with the cylinder. The one implementation of "solve a lamp again
+    under another geometry", for :func:`geometry_draws` and the design's
+    :class:`glossrig.core.design.error_budget.CalibrationDraws`."""
+    from glossrig.core.calibration.poses import relative_to_holder
+    from glossrig.core.extraction.cylinder import surface_samples
+
+    (Rh, th), (Rc, tc) = poses
+    R_cyl, t_cyl = relative_to_holder(Rh, th, Rc, tc)
+    s = surface_samples(K, dist, size, Rh, th, R_cyl, t_cyl, radius, height, pixels=(u, v))
+    # surface_samples keeps the rays that meet the sample, in order: find them by pixel
+    W = float(size[0]) + 1.0
+    keep = np.isin(np.asarray(v) * W + np.asarray(u), s.v * W + s.u)
+    lamp, *_ = _solve_lamp(s.points, s.normals, s.camera_centre, np.asarray(values)[keep], distance, t_cyl,
+                           s.axis, refine)
+    return lamp
 
 
 def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = True, n_draws: int = LAMP_DRAWS,

@@ -237,21 +237,14 @@ class CalibrationDraws:
         nominal values of ``led`` (:meth:`_sheet`) under the camera ``K, dist`` and rotation 0's
         ``poses`` ((R_hold, t_hold), (R_cyl, t_cyl)), camera frame), the holder moved by ``move``
         = (R about its own axes, t) where given (as :func:`~glossrig.core.fitting.calibration_uncertainty._draw_pose`)."""
-        from glossrig.core.calibration.lamps import _solve_lamp
-        from glossrig.core.calibration.poses import relative_to_holder
-        from glossrig.core.extraction.cylinder import surface_samples
+        from glossrig.core.calibration.lamps import lamp_under_geometry
 
         u, v, values, distance = self._sheet(led)
         (Rh, th), (Rc, tc) = poses
         if move is not None:
             Rh, th = Rh @ move[0], th + move[1]
-        R_cyl, t_cyl = relative_to_holder(Rh, th, Rc, tc)
-        s = surface_samples(K, dist, self.cal.size, Rh, th, R_cyl, t_cyl, self.cal.radius, self.cal.height,
-                            pixels=(u, v))
-        # surface_samples keeps the rays that meet the sample, in order: find them by pixel
-        width = float(self.cal.size[0]) + 1.0
-        keep = np.isin(v * width + u, s.v * width + s.u)
-        return _solve_lamp(s.points, s.normals, s.camera_centre, values[keep], distance, t_cyl, s.axis, True)[0]
+        return lamp_under_geometry(K, dist, self.cal.size, ((Rh, th), (Rc, tc)), self.cal.radius, self.cal.height,
+                                   u, v, values, distance, True)
 
     def resolved_shifts(self, led: int) -> np.ndarray:
         """``(n_draws, 3)``: each draw's lamp solution (:meth:`solve_lamp` under the draw's camera,
