@@ -22,7 +22,8 @@ from glossrig.core.errors import InputError
 from glossrig.core.progress import Elapsed
 from glossrig.core.fitting.export import FitFile, read_fit_file
 
-from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes, one_blas_thread
+from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes
+from glossrig.core.workers import one_blas_thread
 from glossrig.core.diagnose.data import load_brdf
 from glossrig.core.diagnose.fit_check import check_fit
 from glossrig.core.diagnose.frames import FrameStage, frame_stage

@@ -39,6 +39,7 @@ from scipy.optimize import minimize_scalar
 
 from glossrig.core.models.angles import ANGLE_COLUMNS
 from glossrig.core.models.ward import WardParams, ward_from_angles
+from glossrig.core.workers import one_blas_thread
 
 from glossrig.core.diagnose.channels import fill_missing_channels
 from glossrig.core.diagnose.data import BrdfData
@@ -79,7 +80,9 @@ class CauseResult:
     identifiable: bool = True
     note: str = ""
     magnitude: float | None = None  # in the twin catalogue's unit, when it maps onto one
-    blocked_by: str | None = None   # the material model that explains as much (instrument causes)
+    blocked_by: str | None = None   # what explains as much: a material model (BRDF-space instrument causes,
+    #                                 flexible.material_first) or the selected frame-space causes joined by " + "
+    #                                 (frame-space causes, conditional.explain_away)
     vs_material: float | None = None  # held-out gain over the best material model (flexible.material_first)
     #: why the frames refute the cause (stray light whose s exceeds the dark pixels' bound,
     #: :mod:`.stray_light`); a refuted cause is not significant
@@ -323,24 +326,10 @@ def vignetting_factor(u, v, size, pp):
     return ((u - cx) ** 2 + (v - cy) ** 2) / rc2
 
 
-def one_blas_thread():
-    """A context in which the native BLAS / OpenMP pools run one thread (threadpoolctl).
-
-    The causes' linear algebra is small - weighted least squares of a few columns over <= 60 000
-    rows, dot products of such vectors - and a threaded BLAS only adds its threads' hand-over:
-    measured on this 2-core machine under load (load average ~20), ``r @ r`` of 53 000 rows took
-    8.2 ms of CPU with OpenBLAS's two threads and 0.02 ms with one, and one
-    :meth:`BrdfModel.solve_linear` 14.1 against 6.5 ms. One thread also leaves the other core to
-    work beside it."""
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(limits=1)
-
-
 def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
     """Every BRDF-space cause, fitted and scored; ``log`` (callable(str)) gets one line per cause
     (per group of the material models) as it finishes (progress). Runs with one BLAS thread
-    (:func:`one_blas_thread`)."""
+    (:func:`glossrig.core.workers.one_blas_thread`)."""
     with one_blas_thread():
         return _brdf_causes(m, log)
 

@@ -32,7 +32,8 @@ import numpy as np
 from scipy.ndimage import median_filter
 from scipy.optimize import minimize_scalar
 
-from glossrig.core.diagnose.catalogue import MAX_PIXELS, CauseResult, chi2, one_blas_thread
+from glossrig.core.diagnose.catalogue import MAX_PIXELS, CauseResult, chi2
+from glossrig.core.workers import one_blas_thread
 from glossrig.core.diagnose.data import FrameData
 
 CLIP_MARGIN = 0.95          # a DN above CLIP_MARGIN * the effective white is treated as clipped
@@ -264,7 +265,7 @@ def frame_causes(fd: FrameData | FrameSet, log=None) -> list[CauseResult]:
     :class:`FrameSet` of them already built (its pixel sample and fixed variances are then
     shared with :func:`glossrig.core.diagnose.residuals.frame_structure`). ``log``
     (callable(str)) gets one line per cause as it finishes (progress). Runs with one BLAS
-    thread (:func:`glossrig.core.diagnose.catalogue.one_blas_thread`)."""
+    thread (:func:`glossrig.core.workers.one_blas_thread`)."""
     with one_blas_thread():
         return _frame_causes(fd, log)
 
