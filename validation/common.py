@@ -188,7 +188,7 @@ def simulate_options(*args, rig: Path = RIG, extra=()) -> dict:
     verb's own parser; a bad argument is an InputError."""
     import argparse
 
-    from glossrig.cli.verbs.simulate import add_arguments, parse_rotations
+    from glossrig.cli.verbs.simulate import add_arguments, parse_rotations, spp_of
     from glossrig.core.rig import load_rig
     from glossrig.twin.simulate import sample_options, twin_effects
 
@@ -203,7 +203,7 @@ def simulate_options(*args, rig: Path = RIG, extra=()) -> dict:
     if a.target != "sample":
         raise InputError(f"glossrig simulate {' '.join(argv)}: not a sample capture")
     return sample_options(load_rig(a.rig), a.material, a.leds, parse_rotations(a.rotations), a.repeats, a.scale, a.seed,
-                          twin_effects(a.effects, a.ideal), a.spp)
+                          twin_effects(a.effects, a.ideal), spp_of(a))
 
 
 def capture(out: Path, material: str, scale: float, seed: int, rotations: str = "0", repeats: int = 1, *,

@@ -95,6 +95,14 @@ def parse_rotations(text: str) -> list[float]:
     return rotations
 
 
+def spp_of(args) -> int:
+    """``--spp``, or the twin's :data:`glossrig.twin.render.DEFAULT_SPP` where it is not given (the
+    parser is built without importing the twin)."""
+    from glossrig.twin.render import DEFAULT_SPP
+
+    return DEFAULT_SPP if args.spp is None else int(args.spp)
+
+
 def run(args) -> int:
     from glossrig.core.errors import InputError
     from glossrig.twin.simulate import simulate
@@ -117,8 +125,7 @@ def run(args) -> int:
             raise InputError(f"--repeats must be >= 1 and --scale in [0.01, 1], got {args.repeats} and {args.scale}")
         _clear_own_capture(Path(args.out))
     out = simulate(args.rig, args.material, args.leds, rotations, args.repeats, args.scale, args.seed,
-                   args.effects, args.out, target=args.target, ideal=args.ideal,
-                   **({} if args.spp is None else {"spp": args.spp}),
+                   args.effects, args.out, target=args.target, ideal=args.ideal, spp=spp_of(args),
                    keep_exr=args.keep_exr, views=args.views, progress=not args.no_progress, resume=resume)
     print(f"capture written to {out}")
     return 0
