@@ -130,9 +130,10 @@ INTRINSICS_ROWS = 20_000
 LAMP_SHEET = "transparency_sheet"
 #: Pixels of the sheet per LED that a lamp solve of :class:`CalibrationDraws` uses (a fixed random
 #: subset; ``calibrate lamps`` solves its draws on up to 20 000): the data are noise-free, so the
-#: subset changes only which pixels the diffuse fit weighs. Measured at scale 0.1 (LED 8, round 0's
-#: camera, 6 draws): the solved lamp shifts agree with 20 000 pixels' to 0.018 mm, against shifts
-#: of standard deviation 0.24-0.99 mm per axis, at a quarter of the CPU.
+#: subset changes only which pixels the diffuse fit weighs. Measured at scale 0.1 (LED 8, the coverage
+#: study's round 0 camera, 6 draws, lamp capture pose noise 0.075 deg / 0.05 mm; /tmp/s8/rows_check.py):
+#: the solved lamp shifts agree with 20 000 pixels' to 0.018 mm, against shifts of standard deviation
+#: 0.26-1.09 mm per axis, at a sixth of the CPU (0.22 against 1.26 CPU-s).
 LAMP_SHEET_ROWS = 5000
 
 
