@@ -348,3 +348,64 @@ def test_extract_records_the_poses_the_fit_draws_from(tiny_captures, tmp_path, m
     assert solved is None and "unreadable" in why
     solved, why = cu.recorded_poses(df.attrs["poses"], d / "camera.json", d / "sample", [0.0, 90.0])
     assert set(solved) == {0.0} and "90 not recorded" in why
+
+
+def _views() -> cu.CameraViews:
+    from glossrig.core.calibration.intrinsics import board_points
+
+    v = _board_views()
+    return cu.CameraViews(obj=board_points((9, 6), 25.0), rvecs=[r for r, _ in v], tvecs=[t for _, t in v],
+                          rms_px=0.15)
+
+
+def test_fit_draws_each_camera_with_the_lamps_solved_under_it(synthetic, tmp_path):
+    """Where lamps.json records calibrate lamps' geometry draws (:class:`cu.LampDraws`), draw k of
+    the fit is camera draw k of that record - the camera the lamps were solved under - with those
+    lamps; beyond the record, and wherever the record cannot be this camera's (another camera.json,
+    cameras this machine does not reproduce, LEDs missing, no record), the lamps are drawn
+    independently and the reason is given."""
+    import json
+    from dataclasses import replace
+
+    from glossrig.core.capture import sha256_file
+
+    _, cal, _ = synthetic
+    views = _views()
+    cam_file = tmp_path / "camera.json"
+    cam_file.write_text(json.dumps({"any": "camera"}))
+    n, seed = 3, 7
+    cams = [cu.camera_numbers(cu.numbered_camera_draw(views, cal.K, cal.dist, cal.size, seed, k)[0]) for k in range(n)]
+    rng = np.random.default_rng(1)
+    pos = {k: p + rng.normal(0, 1.0, (n, 3)) for k, p in cal.lamps.items()}
+    doc = {"geometry_draws": {"seed": seed, "camera_sha256": sha256_file(cam_file), "cameras_fx_fy_cx_cy": cams,
+                              "lamps_mm": {str(k): v.tolist() for k, v in pos.items()}},
+           "std_components": {str(k): {"noise_mm": [0.0, 0.0, 0.0]} for k in pos}}
+    args = (views, cal.K, cal.dist, cal.size, cal.lamps)
+    draws, why = cu.LampDraws.from_doc(doc, cam_file, *args)
+    assert draws is not None and draws.n == n, why
+    joint = replace(cal, poses={}, camera_views=views, camera_stream=seed, lamp_draws=draws)
+    for k in range(n):
+        K, _, _, lamps, *_ = cu.draw_calibration(joint, rng, ("intrinsics", "lamps"), k=k)
+        assert np.max(np.abs(np.subtract(cu.camera_numbers(K), cams[k]))) < cu.CAMERA_MATCH_PX
+        for led, p in cal.lamps.items():
+            assert np.allclose(lamps[led] - p, pos[led][k] - pos[led].mean(axis=0), rtol=0, atol=1e-12)
+    # past the record: the stated rule (independent of the camera), not a recorded draw repeated
+    _, _, _, lamps, *_ = cu.draw_calibration(joint, rng, ("intrinsics", "lamps"), k=n)
+    assert all(not np.allclose(lamps[led] - p, pos[led][j] - pos[led].mean(axis=0))
+               for led, p in cal.lamps.items() for j in range(n))
+
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"any": "other camera"}))
+    d, why = cu.LampDraws.from_doc(doc, other, *args)
+    assert d is None and "not the camera.json" in why
+    assert "records no geometry draws" in cu.LampDraws.from_doc({}, cam_file, *args)[1]
+    moved = json.loads(json.dumps(doc))
+    moved["geometry_draws"]["cameras_fx_fy_cx_cy"][0][0] += 0.5
+    d, why = cu.LampDraws.from_doc(moved, cam_file, *args)
+    assert d is None and "does not reproduce" in why
+    lacking = json.loads(json.dumps(doc))
+    lacking["geometry_draws"]["lamps_mm"].pop(str(next(iter(cal.lamps))))
+    d, why = cu.LampDraws.from_doc(lacking, cam_file, *args)
+    assert d is None and "lack" in why
+    d, why = cu.LampDraws.from_doc(doc, cam_file, None, cal.K, cal.dist, cal.size, cal.lamps)
+    assert d is None and "intrinsics" in why

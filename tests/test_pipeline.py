@@ -242,6 +242,32 @@ def test_extract_then_fit_record_their_provenance(rigdata, extracted, tmp_path):
     assert fp["options"]["starts"] == 1 and fp["options"]["seed"] == 3 and fp["options"]["channels"] == ["luminance"]
 
 
+def test_fit_draws_each_camera_with_the_lamps_solved_under_it(rigdata, extracted, tmp_path):
+    """``calibrate lamps`` keeps its geometry draws in lamps.json; the fit's calibration component
+    reproduces each draw's camera (the one the lamps were solved under, to
+    :data:`~glossrig.core.fitting.calibration_uncertainty.CAMERA_MATCH_PX`) and draws it with those
+    lamps, and fit.json says so (the lamps' error is the camera's: the two partly cancel)."""
+    from glossrig.core.fitting import calibration_uncertainty as cu
+    from glossrig.core.fitting.export import read_fit_file
+
+    rec = json.loads((rigdata / "lamps.json").read_text())["geometry_draws"]
+    n = len(rec["cameras_fx_fy_cx_cy"])
+    assert n == 4 and len(rec["lamps_mm"]["9"]) == n          # --draws 4 (the fixture)
+    cal = cu.load_inputs(rigdata / "camera.json", rigdata / "lamps.json", rigdata / "sample", [0.0])
+    assert cal.lamp_draws is not None, cal.lamp_draws_note
+    rng = np.random.default_rng(0)
+    for k in range(n):
+        K, *_ = cu.draw_calibration(cal, rng, cu.SOURCES, k=k)
+        assert np.max(np.abs(np.subtract(cu.camera_numbers(K), rec["cameras_fx_fy_cx_cy"][k]))) < cu.CAMERA_MATCH_PX, k
+    fit = tmp_path / "fit.json"
+    r = subprocess.run([sys.executable, "-m", "glossrig.cli.main", "fit", str(extracted), "--out", str(fit),
+                        "--channels", "luminance", "--starts", "1", "--calibration-draws", str(n), "-q"],
+                       cwd=rigdata, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    meta = read_fit_file(fit).fit.fits["luminance"].uncertainty["budget"]["calibration"]
+    assert meta["stated"]["lamps_with_camera"].startswith("drawn with the camera draws that located them"), meta
+
+
 def test_report_draws_the_markers_solving_only_the_image_it_shows(tiny_captures, tmp_path, monkeypatch):
     """The report's "Markers and poses" figure (core/report/document.py) solves the poses of the
     calibration image it draws - the capture's first - and no other rotation's (without a

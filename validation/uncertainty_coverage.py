@@ -152,7 +152,9 @@ def stale(previous: dict, work: Path) -> bool:
     uncertainties other than its round's lamps.json states now (lamps.json remade, e.g.
     by a ``calibrate lamps`` that states each lamp's own uncertainty) or with another
     model of the lamps' draws (:data:`~glossrig.core.fitting.calibration_uncertainty.LAMP_DRAW`;
-    a result without one was drawn independently per LED): its component is computed
+    a result without one was drawn independently per LED), or with lamps drawn independently of
+    the camera where lamps.json now records the draws that let the fit draw them together
+    (:class:`~glossrig.core.fitting.calibration_uncertainty.LampDraws`): its component is computed
     again (:func:`measure` with ``previous``)."""
     from glossrig.core.fitting.calibration_uncertainty import LAMP_DRAW, lamp_std
 
@@ -160,8 +162,10 @@ def stale(previous: dict, work: Path) -> bool:
     now = lamp_std(doc)
     stated = previous.get("calibration_meta", {}).get("stated", {})
     used = stated.get("lamps_std_mm") or {}
-    return (stated.get("lamps_draw") != LAMP_DRAW or set(used) != {str(k) for k in now}
-            or any(not np.allclose(used[str(k)], v) for k, v in now.items()))
+    joint = str(stated.get("lamps_with_camera", "")).startswith("drawn with the camera draws")
+    return ((stated.get("lamps_draw") != LAMP_DRAW and not joint) or ("geometry_draws" in doc and "lamps_with_camera"
+                                                                       not in stated)
+            or set(used) != {str(k) for k in now} or any(not np.allclose(used[str(k)], v) for k, v in now.items()))
 
 
 def measure(spec: dict, work: Path, leds: str, rotations: str, draws: int, previous: dict | None = None) -> dict:

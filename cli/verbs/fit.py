@@ -253,6 +253,8 @@ def _add_calibration_component(args, df, mfit, log) -> None:
     if log:
         log(f"calibration component: {args.calibration_draws} draws (poses of {files['capture']}: {poses_from})")
     cal = load_inputs(files["camera"], files["lamps"], files["capture"], rotations, solved=solved)
+    if log:
+        log(f"calibration component: lamps {cal.lamp_draws_note}")
     comp = calibration_component(df, {c: f.params for c, f in mfit.fits.items()}, cal,
                                  n_draws=args.calibration_draws, seed=args.seed, weighting=args.weighting,
                                  clip=args.clip, use_weight_column=not args.ignore_weight_column,

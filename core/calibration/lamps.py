@@ -35,7 +35,10 @@ camera centre. So the stated uncertainty is that of the geometry propagated by M
 bootstrap and the capture's poses within their stated uncertainty, as the fit's calibration
 component draws them, :mod:`glossrig.core.fitting.calibration_uncertainty`) plus the
 refinement's noise covariance (s^2 (J^T J)^-1), in quadrature. It scales with the pixel
-size as the geometry's errors do. Not counted: the LED's distance from the axis (taken as
+size as the geometry's errors do. lamps.json keeps the draws themselves (``geometry_draws``: each
+draw's lamp positions and camera), so that a fit's calibration component draws each camera
+with the lamps solved under it (:class:`glossrig.core.fitting.calibration_uncertainty.LampDraws`):
+the lamps' error is the camera's, and in the sample's angles the two partly cancel. Not counted: the LED's distance from the axis (taken as
 measured) and whatever the poses' stated uncertainty leaves out (it counts their edge-fit
 noise only; validation/uncertainty_coverage.md, section 2, compares stated and actual).
 """
@@ -183,7 +186,7 @@ def _solve_lamp(pts, nrm, centre, vals, distance, axis_point, axis_dir, refine: 
 
 
 def geometry_draws(camera_json, specular_dir, units: list[dict], refine: bool = True, n_draws: int = LAMP_DRAWS,
-                   seed: int = 0, solved: dict | None = None) -> tuple[dict[int, np.ndarray], bool]:
+                   seed: int = 0, solved: dict | None = None) -> tuple[dict[int, np.ndarray], np.ndarray | None]:
     """The lamp positions solved again under ``n_draws`` draws of the geometry they were
     found with (GUM Supplement 1, Monte Carlo): the camera calibration (intrinsics and
     distortion together, a parametric bootstrap of the calibration) and the specular
@@ -193,15 +196,21 @@ def geometry_draws(camera_json, specular_dir, units: list[dict], refine: bool = 
     keeps its measured value, and repeats the solve (:func:`_solve_lamp`) in the drawn
     holder frame, on at most :data:`DRAW_ROWS` samples per LED. ``units``: per LED ``led,
     rotation, u, v`` (block corners, centre at ``+ 0.5``), ``values``, ``distance``.
-    Returns LED -> (n_draws, 3) positions (mm), and whether the intrinsics were drawn (not
-    where the camera file lacks the calibration's views, :class:`~glossrig.core.fitting.calibration_uncertainty.CameraViews`).
+    Draw ``k``'s camera is :func:`~glossrig.core.fitting.calibration_uncertainty.numbered_camera_draw`
+    ``k`` of stream ``seed``, so a fit can draw the same camera with these lamps
+    (:class:`~glossrig.core.fitting.calibration_uncertainty.LampDraws`).
+    Returns LED -> (n_draws, 3) positions (mm), and the drawn cameras' fx, fy, cx, cy
+    (``(n_draws, 4)``), or None where the intrinsics were not drawn (the camera file lacks the
+    calibration's views, :class:`~glossrig.core.fitting.calibration_uncertainty.CameraViews`).
     ``solved``: rotation -> the capture's :func:`~glossrig.core.calibration.poses.calibrate_capture`
     result where the caller has it (those rotations are not solved again,
     :func:`~glossrig.core.fitting.calibration_uncertainty.load_inputs`).
     """
-    from glossrig.core.fitting.calibration_uncertainty import draw_calibration, intrinsics_drawn, load_inputs
+    from glossrig.core.fitting.calibration_uncertainty import (camera_numbers, draw_calibration, intrinsics_drawn,
+                                                                load_inputs)
 
     cal = load_inputs(camera_json, None, specular_dir, sorted({float(x["rotation"]) for x in units}), solved=solved)
+    cal.camera_stream = int(seed)
     rng = np.random.default_rng(seed)
     sub = []
     for x in units:
@@ -210,13 +219,15 @@ def geometry_draws(camera_json, specular_dir, units: list[dict], refine: bool = 
         sub.append({**x, "u": np.asarray(x["u"])[idx], "v": np.asarray(x["v"])[idx],
                     "values": np.asarray(x["values"])[idx]})
     out: dict[int, list] = {int(x["led"]): [] for x in units}
-    for _ in range(n_draws):
-        K, dist, poses, *_ = draw_calibration(cal, rng, ("intrinsics", "poses"))
+    cams = []
+    for k in range(n_draws):
+        K, dist, poses, *_ = draw_calibration(cal, rng, ("intrinsics", "poses"), k=k)
+        cams.append(camera_numbers(K))
         for x in sub:
             out[int(x["led"])].append(lamp_under_geometry(
                 K, dist, cal.size, poses[float(x["rotation"])], cal.radius, cal.height,
                 x["u"] + 0.5, x["v"] + 0.5, x["values"], x["distance"], refine))
-    return {k: np.asarray(v) for k, v in out.items()}, intrinsics_drawn(cal)
+    return {k: np.asarray(v) for k, v in out.items()}, (np.asarray(cams) if intrinsics_drawn(cal) else None)
 
 
 def lamp_under_geometry(K, dist, size, poses, radius: float, height: float, u, v, values, distance,
@@ -252,7 +263,7 @@ def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = Tr
     A capture that cannot serve stops before any image is read: one without exposure
     sequences (a checkerboard capture) or one whose manifest labels a Lambertian
     material (``lambert:...``: no highlight to find the lamp from)."""
-    from glossrig.core.capture import load_manifest
+    from glossrig.core.capture import load_manifest, sha256_file
     from glossrig.core.extraction.extract import measure_capture
     from glossrig.core.rig import load_rig
 
@@ -293,7 +304,8 @@ def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = Tr
     # the poses the measurement solved, where its geometry keeps them (RotationGeometry.poses): the
     # draws start from those instead of solving each rotation's calibration image again
     solved = {rot: g.poses for rot, g in meas.geometry.items() if g.poses is not None}
-    drawn, intr = geometry_draws(cam.path, specular_dir, units, refine, n_draws, seed, solved=solved)
+    drawn, cams = geometry_draws(cam.path, specular_dir, units, refine, n_draws, seed, solved=solved)
+    intr = cams is not None
     std, parts = {}, {}
     for k, lamp in lamps.items():
         geo = drawn[k].std(axis=0, ddof=1)
@@ -317,6 +329,11 @@ def calibrate_lamps(specular_dir, cam, progress: bool = False, refine: bool = Tr
                          "the LED's distance from the axis taken as exact. spread_mm is the spread of the "
                          "per-pixel highlight estimates, not this",
             "std_components": parts, "std_draws": {"n": int(n_draws), "seed": int(seed), "intrinsics_drawn": intr},
+            # the draws themselves, so that a fit draws each camera with the lamps solved under it
+            # (calibration_uncertainty.LampDraws; the camera.json's sha256 says which camera they belong to)
+            "geometry_draws": {"seed": int(seed), "camera_sha256": sha256_file(cam.path),
+                               "cameras_fx_fy_cx_cy": None if cams is None else cams.tolist(),
+                               "lamps_mm": {str(k): v.tolist() for k, v in drawn.items()}},
             "highlight_estimate_mm": {str(k): v for k, v in highlight.items()},
             "diffuse_refinement": {str(k): v for k, v in stats.items()}}
 

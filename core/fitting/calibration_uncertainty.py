@@ -18,9 +18,18 @@ Every calibration stage states its uncertainty in the file it writes:
   independently per LED (as before 2026-11-25) the errors of several LEDs partly cancel
   in the fit: on brushed_original's scale-0.1 measurement of calibration round 1 the
   calibrated lamps alone (the twin's true camera and poses) moved alpha_y by -8.4 % and
-  rho_s by -12 %, where the whole calibration component stated 3.0 % and 4.8 %. Not drawn:
-  the lamps' correlation with the intrinsics and pose draws (the lamps are drawn
-  independently of them, although their error comes from that geometry);
+  rho_s by -12 %, where the whole calibration component stated 3.0 % and 4.8 %.
+  **Drawn with the camera that located them** where lamps.json records its geometry draws
+  (:class:`LampDraws`, written by ``glossrig calibrate lamps`` since 2026-11-25) and the fit
+  uses the camera.json those draws were made with: the lamps were found through that camera,
+  so a camera error moves them too, and in the sample's angles the two partly cancel
+  (validation/uncertainty_coverage.md, section 0: sample_0_6's lobe rotation error 2.15 mrad
+  with camera and lamps both calibrated, 4.11 with the camera's error alone). Draw ``k`` of the
+  fit then takes camera draw ``k`` of the lamp calibration (:func:`numbered_camera_draw`: the
+  same generator, checked against the recorded focal lengths and principal point) and the lamps
+  that calibration solved under it, each LED moved by its refinement noise on top; the split
+  above is the rule for lamp files without that record, whose lamps are drawn independently
+  of the camera;
 * reference albedo - a relative standard uncertainty of its level
   (:data:`ALBEDO_U_REL`) and of its angular variation (:data:`ALBEDO_ANGULAR_U_REL`).
 
@@ -112,6 +121,15 @@ ALBEDO_U_REL = 0.02
 ALBEDO_ANGULAR_U_REL = 0.02
 
 
+#: The tag of the numbered camera draws' generators (:func:`numbered_camera_draw`): draw ``k`` of
+#: stream ``seed`` uses ``numpy.random.default_rng([CAMERA_STREAM, seed, k])``.
+CAMERA_STREAM = 1_634_561_392
+#: A reproduced camera draw matches the recorded one when its fx, fy, cx, cy agree to this (px):
+#: ``cv2.calibrateCamera`` gives the same draw to ~1e-5 px from call to call (its threads sum in
+#: varying order), while two draws differ by ~1 px (scale 0.1: fx's spread 1 px).
+CAMERA_MATCH_PX = 1e-3
+
+
 def lamp_std(doc: dict) -> dict[int, np.ndarray]:
     """Per-LED standard uncertainty (mm, holder axes) of a lamp file's positions: its
     ``std_mm`` where it states one, else :data:`LAMP_STD_MM` (files written before the
@@ -185,6 +203,79 @@ def camera_draw(views: CameraViews, K: np.ndarray, dist: np.ndarray, size: tuple
     return np.asarray(K2, float), np.asarray(d2, float).ravel()[:5]
 
 
+def numbered_camera_draw(views: CameraViews, K: np.ndarray, dist: np.ndarray, size: tuple[int, int],
+                         seed: int, k: int):
+    """Camera draw number ``k`` of stream ``seed`` (:func:`camera_draw` with a generator of its
+    own, :data:`CAMERA_STREAM`): the same camera for whoever asks, so ``calibrate lamps`` and a
+    fit draw the camera the lamps were solved under (:class:`LampDraws`)."""
+    return camera_draw(views, K, dist, size, np.random.default_rng([CAMERA_STREAM, int(seed), int(k)]))
+
+
+def camera_numbers(K: np.ndarray) -> list[float]:
+    """fx, fy, cx, cy of an intrinsic matrix: what lamps.json records of each camera draw."""
+    return [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
+
+
+@dataclass
+class LampDraws:
+    """The lamp calibration's own geometry draws (lamps.json ``geometry_draws``, written by
+    :func:`glossrig.core.calibration.lamps.calibrate_lamps`): for each draw ``k`` the lamp
+    positions solved under camera draw ``k`` of stream ``seed`` (:func:`numbered_camera_draw`)
+    and the specular capture's drawn poses; each LED's refinement noise (``std_components``),
+    which is its own and drawn independently."""
+
+    seed: int
+    positions: dict[int, np.ndarray]        # LED -> (n, 3) mm, holder frame
+    noise_mm: dict[int, np.ndarray]         # LED -> (3,) standard uncertainty
+    cameras: np.ndarray | None              # (n, 4) fx, fy, cx, cy of each draw; None: intrinsics not drawn
+
+    @property
+    def n(self) -> int:
+        return int(next(iter(self.positions.values())).shape[0])
+
+    @classmethod
+    def from_doc(cls, doc: dict, camera_json, views: CameraViews | None, K, dist, size,
+                 leds) -> tuple[LampDraws | None, str]:
+        """The record of ``doc`` (a lamps.json) where a fit with ``camera_json`` can draw its
+        camera and lamps together, else (None, why). Conditions: the record is readable and
+        covers ``leds``; ``camera_json`` has the sha256 it was made with; the intrinsics were
+        drawn there exactly when they can be here (``views``); and this machine reproduces the
+        record's first camera draw (:data:`CAMERA_MATCH_PX`; another OpenCV could draw another)."""
+        from glossrig.core.capture import sha256_file
+
+        rec = doc.get("geometry_draws")
+        if not rec:
+            return None, ("the lamp file records no geometry draws (written before they were kept): lamps drawn "
+                          "independently of the camera, " + LAMP_DRAW)
+        try:
+            seed = int(rec["seed"])
+            pos = {int(k): np.asarray(v, float) for k, v in rec["lamps_mm"].items()}
+            comps = doc.get("std_components") or {}
+            noise = {k: np.asarray((comps.get(str(k)) or {}).get("noise_mm", [0.0, 0.0, 0.0]), float) for k in pos}
+            cams = None if rec.get("cameras_fx_fy_cx_cy") is None else np.asarray(rec["cameras_fx_fy_cx_cy"], float)
+            sha = str(rec["camera_sha256"])
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            return None, f"the lamp file's geometry draws are unreadable ({type(e).__name__}: {e}): lamps drawn independently"
+        n = {p.shape for p in pos.values()}
+        if len(n) != 1 or (shape := n.pop())[0] < 2 or shape[1:] != (3,) or not all(np.isfinite(p).all()
+                                                                                   for p in pos.values()):
+            return None, "the lamp file's geometry draws are not n x 3 finite positions per LED: lamps drawn independently"
+        if set(int(k) for k in leds) - set(pos):
+            return None, "the lamp file's geometry draws lack some LEDs: lamps drawn independently"
+        if sha256_file(camera_json) != sha:
+            return None, (f"{camera_json} is not the camera.json the lamps were calibrated with: lamps drawn "
+                          "independently of the camera")
+        if (cams is None) != (views is None) or (cams is not None and cams.shape != (shape[0], 4)):
+            return None, "the lamp calibration drew the intrinsics where this fit cannot (or not where it can): "                          "lamps drawn independently"
+        if cams is not None and views is not None:
+            K0, _ = numbered_camera_draw(views, K, dist, size, seed, 0)
+            if np.max(np.abs(np.asarray(camera_numbers(K0)) - cams[0])) > CAMERA_MATCH_PX:
+                return None, ("this machine does not reproduce the lamp calibration's camera draws (another OpenCV?): "
+                              "lamps drawn independently of the camera")
+        return cls(seed=seed, positions=pos, noise_mm=noise, cameras=cams), \
+            f"drawn with the camera draws that located them ({shape[0]} draws recorded by calibrate lamps)"
+
+
 @dataclass
 class CalibrationInputs:
     """The nominal calibration and its stated uncertainties (module docstring)."""
@@ -201,6 +292,10 @@ class CalibrationInputs:
     angular_u: float = ALBEDO_ANGULAR_U_REL
     sources_files: dict = field(default_factory=dict)
     camera_views: CameraViews | None = None     # for the correlated draws of the intrinsics (camera_draw)
+    #: draw k's camera is numbered_camera_draw(..., camera_stream, k) (calibrate lamps' draws); None: drawn from the rng
+    camera_stream: int | None = None
+    lamp_draws: LampDraws | None = None         # the lamps solved under those camera draws (LampDraws)
+    lamp_draws_note: str = ""
 
 
 def rotation_poses(res: dict, rig) -> dict:
@@ -254,12 +349,17 @@ def load_inputs(camera_json, lamps_json, capture_dir, rotations, solved: dict | 
             raise InputError(f"the poses given for rotation {float(rot):g} deg were solved for rotation "
                              f"{float(res['rotation']):g}", path=capture_dir)
         poses[float(rot)] = rotation_poses(res, rig)
-    return CalibrationInputs(K=cam.K, dist=cam.dist, size=(int(cam.image_size[0]), int(cam.image_size[1])),
+    size = (int(cam.image_size[0]), int(cam.image_size[1]))
+    views = CameraViews.from_camera_doc(cam.meta)
+    draws, note = LampDraws.from_doc(ldoc, camera_json, views, cam.K, cam.dist, size, lamps) if lamps \
+        else (None, "")
+    return CalibrationInputs(K=cam.K, dist=cam.dist, size=size,
                              lamps=lamps, lamps_std=lamp_std(ldoc), radius=rig.cylinder_radius,
                              height=rig.sample_height, poses=poses,
                              sources_files={"camera": str(camera_json), "lamps": str(lamps_json),
                                             "capture": str(capture_dir)},
-                             camera_views=CameraViews.from_camera_doc(cam.meta))
+                             camera_views=views, camera_stream=None if draws is None else draws.seed,
+                             lamp_draws=draws, lamp_draws_note=note)
 
 
 def recorded_poses(doc, camera_json, capture_dir, rotations=None) -> tuple[dict | None, str]:
@@ -391,21 +491,37 @@ def lamp_draw(rng, n_leds: int) -> np.ndarray:
     return np.sqrt(f) * common + np.sqrt(1 - f) * rng.standard_normal((n_leds, 3))
 
 
-def draw_calibration(cal: CalibrationInputs, rng, sources=SOURCES):
+def draw_calibration(cal: CalibrationInputs, rng, sources=SOURCES, k: int | None = None):
     """One Monte Carlo draw: (K, dist, poses, lamps, albedo scale, angular coefficients).
     The intrinsics and distortion are drawn together by :func:`camera_draw` where the
-    camera file allows it (else not drawn: :func:`intrinsics_drawn`)."""
+    camera file allows it (else not drawn: :func:`intrinsics_drawn`). ``k``: the draw's
+    number; with ``cal.camera_stream`` the camera is :func:`numbered_camera_draw` ``k``, and
+    where ``cal.lamp_draws`` holds draw ``k`` the lamps are those solved under that camera,
+    each moved by its own refinement noise (:class:`LampDraws`); otherwise the lamps are
+    drawn independently of the camera (:func:`lamp_draw`)."""
     K, dist = cal.K.copy(), np.asarray(cal.dist, float).copy()
     intr = intrinsics_drawn(cal, sources)
+    joint = k is not None and cal.lamp_draws is not None and k < cal.lamp_draws.n
     if intr:
         assert cal.camera_views is not None
-        K, dist = camera_draw(cal.camera_views, cal.K, cal.dist, cal.size, rng)
+        if k is not None and cal.camera_stream is not None and (joint or cal.lamp_draws is None):
+            K, dist = numbered_camera_draw(cal.camera_views, cal.K, cal.dist, cal.size, cal.camera_stream, k)
+        else:
+            K, dist = camera_draw(cal.camera_views, cal.K, cal.dist, cal.size, rng)
     poses = {}
     for rot, rp in cal.poses.items():
-        poses[rot] = tuple(_draw_pose(rp[k], K, dist, rng, "poses" in sources, intr)
-                           for k in ("holder", "cylinder"))
-    lamps = {k: p + cal.lamps_std[k] * e for (k, p), e in zip(cal.lamps.items(), lamp_draw(rng, len(cal.lamps)))} \
-        if "lamps" in sources else dict(cal.lamps)
+        poses[rot] = tuple(_draw_pose(rp[j], K, dist, rng, "poses" in sources, intr)
+                           for j in ("holder", "cylinder"))
+    if "lamps" not in sources:
+        lamps = dict(cal.lamps)
+    elif joint:
+        assert cal.lamp_draws is not None and k is not None
+        d = cal.lamp_draws
+        lamps = {led: p + (d.positions[led][k] - d.positions[led].mean(axis=0))
+                 + d.noise_mm[led] * rng.standard_normal(3) for led, p in cal.lamps.items()}
+    else:
+        lamps = {led: p + cal.lamps_std[led] * e
+                 for (led, p), e in zip(cal.lamps.items(), lamp_draw(rng, len(cal.lamps)))}
     if "albedo" in sources:
         scale = 1.0 + cal.albedo_u * rng.standard_normal()
         hi, ho = cal.angular_u * rng.standard_normal(2)
@@ -538,8 +654,8 @@ def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: in
                                   fp=fps[c].take(okc))
         base[c] = _reported(start[c], x0[c])
     shifts: dict[str, list] = {c: [] for c in fits}
-    for _ in range(n_draws):
-        K, dist, poses, lamps, scale, (hi, ho) = draw_calibration(cal, rng, sources)
+    for k in range(n_draws):
+        K, dist, poses, lamps, scale, (hi, ho) = draw_calibration(cal, rng, sources, k=k)
         ang = row_angles(cal, u, v, led, rot, K=K, poses=poses, lamps=lamps, dist=dist)
         ok = ang["valid"] & ok0
         mult = scale
@@ -571,7 +687,12 @@ def calibration_component(df, fits: dict, cal: CalibrationInputs, *, n_draws: in
                     "stated": {"intrinsics_reprojection_rms_px":
                                None if cal.camera_views is None else cal.camera_views.rms_px,
                                "lamps_std_mm": {str(k): s.tolist() for k, s in cal.lamps_std.items()},
-                               "lamps_draw": LAMP_DRAW,
+                               "lamps_draw": LAMP_DRAW if cal.lamp_draws is None else
+                               f"draws 0-{min(n_draws, cal.lamp_draws.n) - 1}: the lamps calibrate lamps solved under "
+                               f"the same camera draw, plus each LED's refinement noise"
+                               + (f"; draws {cal.lamp_draws.n}-{n_draws - 1}: {LAMP_DRAW}"
+                                  if n_draws > cal.lamp_draws.n else ""),
+                               "lamps_with_camera": cal.lamp_draws_note,
                                "albedo_u_rel": cal.albedo_u, "albedo_angular_u_rel": cal.angular_u}}
     return out
 
