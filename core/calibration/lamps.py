@@ -39,8 +39,9 @@ size as the geometry's errors do. lamps.json keeps the draws themselves (``geome
 draw's lamp positions and camera), so that a fit's calibration component draws each camera
 with the lamps solved under it (:class:`glossrig.core.fitting.calibration_uncertainty.LampDraws`):
 the lamps' error is the camera's, and in the sample's angles the two partly cancel. Not counted: the LED's distance from the axis (taken as
-measured) and whatever the poses' stated uncertainty leaves out (it counts their edge-fit
-noise only; validation/uncertainty_coverage.md, section 2, compares stated and actual).
+measured) and whatever the poses' stated uncertainty leaves out (their edge-fit noise times
+:data:`~glossrig.core.fitting.calibration_uncertainty.POSE_STD_FACTOR`; validation/uncertainty_coverage.md,
+sections 0' and 2, compare stated and actual).
 """
 from __future__ import annotations
 
