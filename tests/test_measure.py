@@ -88,6 +88,10 @@ def test_measure_writes_everything_and_redoes_exactly_what_changed(tiny_captures
     gloss = fit["luminance"]["gloss"]              # glossrig.core.models.gloss of the luminance fit (issue 17)
     assert {"gu20", "gu60", "gu85", "haze", "doi"} <= set(gloss)
     assert all(math.isfinite(gloss[k]) and gloss[k] >= 0 for k in ("gu20", "gu60", "gu85"))
+    # the fit's budget has the calibration component, as glossrig fit's (measure's camera, lamps and capture)
+    u = fit["luminance"]["uncertainty"]
+    assert "calibration" not in u["budget"].get("omitted", {}), u["budget"].get("omitted")
+    assert all(u[k]["components"]["calibration"] > 0 for k in ("rho_d", "rho_s", "alpha_x", "alpha_y")), u
     # the recovery table: camera and lamps are the truth, so their errors are exactly 0
     rec = json.loads((out / "recovery.json").read_text())
     assert rec["intrinsics"] == {"fx_error_percent": 0.0, "fy_error_percent": 0.0, "cx_error_px": 0.0,

@@ -42,7 +42,7 @@ HELP = "calibrate, extract, fit, export, render and report a material in one com
 
 #: the fit settings of a measurement (glossrig fit's defaults)
 FIT_OPTIONS = {"weighting": "mirror", "clip": None, "clip_model": True, "use_weight_column": True, "n_starts": 4,
-               "seed": 0}
+               "seed": 0, "calibration_draws": 24}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -218,7 +218,13 @@ def _extract(sample, ref, cam_path, lamps_path, samples_path, plots, args, progr
 
 
 def _fit(samples_path, fit_path, log) -> None:
-    """glossrig fit with its defaults (thesis 4.5): every channel, noise-only standard errors."""
+    """glossrig fit with its defaults (thesis 4.5): every channel, and the uncertainty budget with the
+    calibration component drawn from this measurement's camera.json, lamps.json and sample capture
+    (the ones the samples table's provenance names), as ``glossrig fit`` adds it
+    (:func:`glossrig.cli.verbs.fit._add_calibration_component`)."""
+    from argparse import Namespace
+
+    from glossrig.cli.verbs.fit import _add_calibration_component
     from glossrig.core.fitting.export import write_fit_json
     from glossrig.core.fitting.fit import CHANNELS, fit_samples
     from glossrig.core.provenance import provenance
@@ -229,6 +235,10 @@ def _fit(samples_path, fit_path, log) -> None:
     mfit = fit_samples(df, channels=CHANNELS, weighting=o["weighting"], clip=o["clip"], clip_model=o["clip_model"],
                        use_weight_column=o["use_weight_column"], source=str(samples_path), n_starts=o["n_starts"],
                        seed=o["seed"], log=log)
+    _add_calibration_component(Namespace(calibration_draws=o["calibration_draws"], seed=o["seed"],
+                                         weighting=o["weighting"], clip=o["clip"],
+                                         ignore_weight_column=not o["use_weight_column"], camera=None, lamps=None,
+                                         capture=None), df, mfit, log)
     prov = provenance({"samples": samples_path}, {"channels": list(CHANNELS), **o}, tool="glossrig measure (fit)")
     prov["inputs"]["samples"]["provenance"] = df.attrs.get("provenance")
     write_fit_json(mfit, fit_path, provenance=prov)
