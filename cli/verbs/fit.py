@@ -150,7 +150,7 @@ def run(args) -> int:
                        footprint=False if args.no_footprint else None, cfa=args.cfa, led_aperture=args.led_aperture,
                        calibration=calibration)
     if calibration is None:
-        _add_calibration_component(args, df, mfit, log)
+        add_calibration_component(args, df, mfit, log)
     write_fit_json(mfit, out, provenance=_provenance(args, src, channels, df))
     if log:
         log(f"wrote {out}")
@@ -229,8 +229,8 @@ def _calibration_files(args, df) -> tuple[dict | None, str]:
     return files, ""
 
 
-def _add_calibration_component(args, df, mfit, log) -> None:
-    """Each channel's budget gets the calibration component
+def add_calibration_component(args, df, mfit, log) -> None:
+    """Each channel's budget gets the calibration component (shared with ``glossrig measure``'s fit step)
     (:mod:`glossrig.core.fitting.calibration_uncertainty`) where the calibration files
     can be found; else its ``omitted`` says why."""
     from glossrig.core.fitting.calibration_uncertainty import (add_calibration, calibration_component, load_inputs,

@@ -278,7 +278,8 @@ class LampDraws:
             return None, (f"{camera_json} is not the camera.json the lamps were calibrated with: lamps drawn "
                           "independently of the camera")
         if (cams is None) != (views is None) or (cams is not None and cams.shape != (shape[0], 4)):
-            return None, "the lamp calibration drew the intrinsics where this fit cannot (or not where it can): "                          "lamps drawn independently"
+            return None, ("the lamp calibration drew the intrinsics where this fit cannot (or not where it can): "
+                          "lamps drawn independently")
         if cams is not None and views is not None:
             K0, _ = numbered_camera_draw(views, K, dist, size, seed, 0)
             if np.max(np.abs(np.asarray(camera_numbers(K0)) - cams[0])) > CAMERA_MATCH_PX:
