@@ -18,7 +18,7 @@ from glossrig.core.diagnose.material_models import (LOBES, angle_arrays, fit_lob
                                                     ggx_ndf, renormalise, schlick_ratio)
 from glossrig.core.models.ward import WardParams, ward_from_angles
 
-from conftest import RIG
+from conftest import RIG, ROOT, require_shared
 
 
 def _angles(wi, wo):
@@ -144,6 +144,54 @@ def test_fit_lobe_starts_inside_its_range_from_an_outside_start(start):
     y = 0.5 / np.pi + 0.3 * ggx_lobe(*_args(a), 0.4, 0.2, 0.3)
     f = fit_lobe(a, y, np.ones_like(y), "ggx", start=start)
     assert abs(f.alpha_x / 0.4 - 1) < 0.01 and abs(f.alpha_y / 0.2 - 1) < 0.01 and abs(f.rho_d / 0.5 - 1) < 0.01
+
+
+@pytest.fixture
+def rgl_study(monkeypatch):
+    """validation/diagnose/rgl_study.py, imported as the study runs (from the repository root); the
+    module needs the shared RGL data folder (validation.paths stops without it)."""
+    import importlib
+
+    require_shared("data/rgl")
+    monkeypatch.syspath_prepend(str(ROOT))
+    return importlib.import_module("validation.diagnose.rgl_study")
+
+
+def test_rgl_study_drops_a_row_the_renormalisation_leaves_without_a_channel(rgl_study):
+    # ilm_l3_37_matte_rgb: a row measured in blue only, at theta_in = 90 deg, where the paper's measured
+    # BRDF is 0: the renormalisation makes its blue missing too (weight NaN). Completed from the lobe it
+    # was a finite value of NaN weight, and the study's GGX fit stopped ("Residuals are not finite in the
+    # initial point")
+    import pandas as pd
+
+    from glossrig.core.diagnose.data import LUMA, renormalise_table
+    from glossrig.core.diagnose.material_models import fit_weights
+
+    rng = np.random.default_rng(7)
+    a = _rig_like(2000, rng)
+    L = ggx_lobe(*_args(a), 0.2, 0.15, 0.3)
+    rho_d = np.array([0.3, 0.4, 0.5])
+    t = pd.DataFrame(a)
+    for c, rd in zip("rgb", rho_d):
+        t[c] = rd / np.pi + 0.2 * L
+        t[f"weight_{c}"] = 1.0
+    t["weight"] = 1.0
+    t.loc[0, ["r", "g"]] = np.nan          # blue only
+    t.loc[1, "r"] = np.nan                 # green and blue
+    ref = np.full((len(t), 3), 0.8 / np.pi)     # Lambertian of albedo 0.8: the renormalisation changes nothing...
+    ref[0] = 0.0                                # ...but in row 0, where the reference's BRDF is 0
+    corr, cal = renormalise_table(t, lambda _: ref, 0.8)
+    assert cal["rows_made_missing"]["b"] == 1
+    y, _ = rgl_study.measured_luminance(corr, L)
+    assert np.isnan(y[0]) and np.isfinite(y[1:]).all()
+    # a row keeping a channel is completed from the lobe: every channel is rho_d,c / pi + 0.2 L without
+    # noise, so the fill's two-parameter solve recovers it up to rounding
+    np.testing.assert_allclose(y[1], LUMA @ (rho_d / np.pi + 0.2 * L[1]), rtol=1e-9)
+    ok = np.isfinite(y)
+    W = fit_weights(corr)[ok]
+    assert np.isfinite(W).all()
+    f = fit_lobe({k: v[ok] for k, v in a.items()}, y[ok], W, "ggx", (0.1, 0.1, 0.0), uncertainty=False)
+    assert abs(f.alpha_x / 0.2 - 1) < 0.01 and abs(f.alpha_y / 0.15 - 1) < 0.01
 
 
 def _brdf_model(kind, seed):

@@ -213,6 +213,26 @@ def errors(pred, y, a) -> dict:
             "lobe_median_abs_rel": float(np.median(np.abs(rel[lobe]))) if lobe.any() else None, "n_lobe": int(lobe.sum())}
 
 
+def measured_luminance(t, L) -> tuple:
+    """``(y, info)``: the luminance of each row of an extracted table ``t`` (thesis-normalised or
+    renormalised) as glossrig diagnose forms it - a missing colour channel predicted from the lobe
+    values ``L`` (:func:`glossrig.core.diagnose.channels.fill_missing_channels`, whose ``info`` this
+    is) - and NaN where the row has no measured channel at all: there is no datum to complete, and
+    diagnose drops such a row (:func:`glossrig.core.diagnose.data.load_brdf`). The reference
+    renormalisation (:func:`glossrig.core.diagnose.data.renormalise_table`) makes every channel of
+    a row missing where the paper's BRDF is 0, as Mitsuba's ``measured`` plugin gives at the
+    horizon; such a row's weight is NaN, and a value filled in for it made the lobe fits' residuals
+    NaN."""
+    import numpy as np
+
+    from glossrig.core.diagnose.channels import fill_missing_channels
+    from glossrig.core.diagnose.data import LUMA
+
+    rgb = t[["r", "g", "b"]].to_numpy(float)
+    y, _, info = fill_missing_channels(t.assign(f=rgb @ LUMA), L)
+    return np.where(np.isfinite(rgb).any(axis=1), y, np.nan), info
+
+
 def analyse(m: str, run: dict, work: Path, a) -> dict:
     """Fit each model to the extracted samples and score it against the measured BRDF."""
     import numpy as np
@@ -221,7 +241,6 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
     from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD
     from glossrig.core.diagnose.data import LUMA
     from glossrig.core.diagnose.material_models import LobeFit, angle_arrays, fit_lobe, fit_weights, fresnel_profile
-    from glossrig.core.diagnose.channels import fill_missing_channels
     from glossrig.core.diagnose.data import renormalise_table
     from glossrig.core.fitting.fit import fit_samples
     from glossrig.core.samples import read_samples
@@ -232,7 +251,6 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
     A = angle_arrays(t)
     truth, paper = truth_of(m), MeasuredBRDF(REFERENCE)
     y_true = truth.table(t) @ LUMA
-    rgb = t[["r", "g", "b"]].to_numpy(float)
     # the calibration glossrig diagnose applies with --reference-brdf (data.renormalise_table: each channel
     # times f_ref pi / albedo, weights rescaled), so that the study's baseline and extensions stand on its footing
     corr, calibration = renormalise_table(t, paper.table, ALBEDO, source=str(REFERENCE))
@@ -243,9 +261,9 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
     # a row missing a colour channel keeps the others; the missing one is predicted as diagnose does
     # (glossrig.core.diagnose.channels: that channel's base model on the lobe of the material fit of that data)
     unit = LobeFit("ward", 0.0, 1.0, wd.alpha_x, wd.alpha_y, wd.lobe_rotation).predict(A)
-    y0, _, fill = fill_missing_channels(t.assign(f=rgb @ LUMA), unit)
+    y0, fill = measured_luminance(t, unit)
     unit_ref = LobeFit("ward", 0.0, 1.0, w_ref.alpha_x, w_ref.alpha_y, w_ref.lobe_rotation).predict(A)
-    y1, _, _ = fill_missing_channels(corr.assign(f=corr[["r", "g", "b"]].to_numpy(float) @ LUMA), unit_ref)
+    y1, _ = measured_luminance(corr, unit_ref)
     H = heldout_grid()
     y_held = truth.luminance(H["theta_in"], H["phi_in"], H["theta_out"], H["phi_out"])
 
@@ -290,8 +308,9 @@ def analyse(m: str, run: dict, work: Path, a) -> dict:
 
 #: version of an analysis (WORK/MATERIAL.study.json): an analysis of another version is made again.
 #: 2: the extensions and their baseline fitted to the reference-renormalised data (diagnose's footing);
-#: 3: the flexible material model with its reciprocal grazing term (core/diagnose/flexible.py)
-ANALYSIS_VERSION = 3
+#: 3: the flexible material model with its reciprocal grazing term (core/diagnose/flexible.py);
+#: 4: a row with no measured channel (after the renormalisation) is no datum (:func:`measured_luminance`)
+ANALYSIS_VERSION = 4
 #: the baseline of the verdict check: the thesis Ward model fitted to the reference-renormalised data,
 #: as glossrig diagnose --reference-brdf fits it (core/diagnose/__init__.py)
 BASELINE = "reference"
