@@ -239,21 +239,29 @@ def test_design_errors_cli_states_a_usable_budget(tmp_path, capsys, rig):
 WIDE = WardParams(rho_d=0.0518, rho_s=0.0069, alpha_x=0.2, alpha_y=0.12, lobe_rotation=2.47)
 
 
-@pytest.mark.parametrize("lobe, refits", [(P, "footprint"), (WIDE, "point")])
-def test_intrinsics_term_equals_the_spread_of_nonlinear_refits(rig, lobe, refits):
+@pytest.mark.parametrize("lobe, refits, poses", [(P, "footprint", False), (WIDE, "point", False), (WIDE, "point", True)])
+def test_intrinsics_term_equals_the_spread_of_nonlinear_refits(rig, lobe, refits, poses):
     """With a camera calibration's views the calibration component holds the intrinsics
     drawn as ``glossrig fit`` draws them (EB.CalibrationDraws, the lamps solved again under
     each). Its nominal geometry is the design's own (the pixels' rays cast again: the same
     angles to 1e-6 degree), and its spread over the draws (Gauss-Newton refits) equals that of
     this test's own nonlinear refits (SciPy's trust region, residuals assembled here with the
-    pipeline's weights) of the nominal data against each drawn geometry - the footprint-averaged
+    pipeline's weights, the table's at the value each row holds) of the nominal data against each drawn geometry (root mean square about
+    the nominal fit, the draws' mean bias kept) - the footprint-averaged
     model of each row's kernel for sample_2_6, as narrow as a scale-0.05 footprint, the point
     model for a wide lobe, as the budget decides (EB._Sums.intrinsics_variance): the same 12 draws, so no sampling error
     between the two; both converge to ~1e-8 of the parameters, against shifts of 1e-4 to
     1e-2 of them, and eq. 4.82's weights come from the drawn angles in both (the pipeline's
     table holds those): ratio in [0.99, 1.01]. (A linearisation of the same draws
     gave 0.16 for rho_s and 2.8 for alpha_y here: at a calibration's noise the angle
-    errors act at second order as much as at first.)"""
+    errors act at second order as much as at first.) With ``poses`` the draws also move the
+    markers' poses by the pose step's measured errors (EB.HOLDER_POSE_NOISE_ROT_DEG and
+    companions at this scale; the geometry of a holder error:
+    test_a_holder_pose_error_moves_the_lamps_against_sample_and_camera): the lamp capture's,
+    through the lamps solved again, and the sample capture's, drawn afresh for each of the two
+    rotations (each has its own calibration image), which the refits here take rotation by
+    rotation. The pose errors act at second order too: at rotation 0 a turn of the holder about
+    its x axis by +-0.05 degree moved the wide lobe's rotation by -4.1e-4 and -0.4e-4 rad."""
     from test_calibration_uncertainty import _board_views
 
     from glossrig.core.calibration.intrinsics import board_points
@@ -265,25 +273,33 @@ def test_intrinsics_term_equals_the_spread_of_nonlinear_refits(rig, lobe, refits
     views = _board_views()
     cv = CameraViews(obj=board_points((9, 6), 25.0), rvecs=[v[0] for v in views], tvecs=[v[1] for v in views],
                      rms_px=0.15)
-    zero = dict(ONLY, pose_rot_deg=0.0, pose_t_mm=0.0)
+    pose = dict(pose_rot_deg=None, pose_t_mm=None) if poses else dict(pose_rot_deg=0.0, pose_t_mm=0.0)
     b = EB.design_budget(rig, [("s", lobe)], rotations=ROTS, led_ids=LEDS, scale=SCALE, noise="relative:0.03",
-                         fisher_rows=ROWS, lamp_std_mm=0.0, camera_views=cv, intrinsics_draws=12, seed=3, **zero)["s"]
+                         fisher_rows=ROWS, lamp_std_mm=0.0, camera_views=cv, intrinsics_draws=12, seed=3,
+                         **dict(ONLY, **pose))["s"]
     assert "12 draws" in b["stated"]["intrinsics"]
+    sd = b["stated"]["marker_pose_noise"]
+    f = EB.POSE_NOISE_SCALE / SCALE
+    for k, v in (("pose_rot_deg", EB.HOLDER_POSE_NOISE_ROT_DEG), ("pose_t_mm", EB.HOLDER_POSE_NOISE_T_MM),
+                 ("cylinder_rot_deg", EB.CYLINDER_POSE_NOISE_ROT_DEG), ("cylinder_t_mm", EB.CYLINDER_POSE_NOISE_T_MM)):
+        np.testing.assert_allclose(sd[k], f * np.asarray(v) if poses else 0.0)
     blocks, nm = _blocks(rig, "relative:0.03", lobe)
     px = cov.pixel_geometry(rig, SCALE)
-    intr = EB.CalibrationDraws(rig, px, cv, 12, 3)
+    intr = EB.CalibrationDraws(rig, px, cv, 12, 3, **sd)
+    assert intr.moves_sample == poses
     # the footprint-averaged model where the budget refitted it (the lobe as narrow as a footprint
     # at this scale): each row's kernel from the design's slope Jacobians, held at the nominal geometry
     assert b["calibration_refits"] == refits
     footprint = refits == "footprint"
     drawn_by_led, fps = {}, {}
     for i, lamp, sub, a, _w, _m in blocks:
-        nominal, drawn = intr.angles(i)
         index = {int(k): j for j, k in enumerate(px.v * 100000 + px.u)}
         rows = np.array([index[int(k)] for k in sub.v * 100000 + sub.u])
-        for k in ("theta_in", "theta_out", "theta_h"):
-            np.testing.assert_allclose(np.degrees(nominal[k][rows]), a[k], atol=1e-6)
-        drawn_by_led[i] = [{k: np.degrees(v[rows]) for k, v in ad.items()} for ad in drawn]
+        for ri, r in enumerate(ROTS):           # the sample capture's pose errors: each rotation's own
+            nominal, drawn = intr.angles(i, ri)
+            for k in ("theta_in", "theta_out", "theta_h"):
+                np.testing.assert_allclose(np.degrees(nominal[k][rows]), a[k], atol=1e-6)
+            drawn_by_led[(i, r)] = [{k: np.degrees(v[rows]) for k, v in ad.items()} for ad in drawn]
         a_all = cov.direction_angles(px, lamp, half=True)
         fps[i] = {r: sample_footprint(EB.pixel_slope_jacobian(px, a_all, r)[rows]) for r in ROTS}
 
@@ -295,23 +311,34 @@ def test_intrinsics_term_equals_the_spread_of_nonlinear_refits(rig, lobe, refits
         return footprint_eval(geo, fp, x)
 
     x0 = np.array([getattr(lobe, k) for k in fi.PARAMS])
+    if footprint:
+        # the pixel quadrature the fit chooses for this lobe, over all the rows (FootprintModel.orders_for)
+        keys = [(i, r) for i, *_ in blocks for r in ROTS]
+        geo = ward_geometry(*(np.concatenate([np.radians(a[k]) for _i, _l, _s, a, _w, _m in blocks for _r in ROTS])
+                              for k in ("theta_in", "theta_out", "theta_h")),
+                            np.concatenate([np.radians(np.mod(a["phi_h"] - r, 360.0))
+                                            for _i, _l, _s, a, _w, _m in blocks for r in ROTS]))
+        joined = sample_footprint(np.concatenate([fps[i][r].J for i, r in keys]))
+        orders = joined.orders_for(geo, x0)
+        fps = {i: {r: fp.with_orders(orders) for r, fp in by_rot.items()} for i, by_rot in fps.items()}
     data = {(i, r): model(a, r, x0, fps[i][r]) for i, _lamp, _sub, a, _w, _m in blocks for r in ROTS}
     shifts = []
     for d in range(12):
         def fun(x, d=d):
             out = []
             for i, _lamp, _sub, a, w, _m in blocks:
-                ad = drawn_by_led[i][d]
-                # eq. 4.82's weight from the angles the pipeline has: the drawn ones
-                md = peak_weight(*(np.radians(ad[k]) for k in ("theta_in", "phi_in", "theta_out", "phi_out")))
                 for r in ROTS:
+                    ad = drawn_by_led[(i, r)][d]
+                    # eq. 4.82's weight from the angles the pipeline has: the drawn ones
+                    md = peak_weight(*(np.radians(ad[k]) for k in ("theta_in", "phi_in", "theta_out", "phi_out")))
                     y = data[(i, r)]
-                    s = _ratio_sigma(nm, _ward(a, r, lobe)[0], a, rig)
+                    s = _ratio_sigma(nm, y, a, rig)          # the table weighs a row by the value it holds
                     res = np.sqrt(w) * md * (model(ad, r, x, fps[i][r]) - y) / s
                     out.append(np.where(np.isfinite(res), res, 0.0))
             return np.concatenate(out)
         shifts.append(least_squares(fun, x0, x_scale=np.abs(x0) + 1e-3, xtol=1e-14, ftol=1e-14, gtol=1e-14).x - x0)
-    sd = np.std(np.asarray(shifts), axis=0, ddof=1)
+    # the root mean square of the errors (their bias kept: EB._Sums.intrinsics_variance)
+    sd = np.sqrt(np.mean(np.square(shifts), axis=0))
     for k, name in enumerate(fi.PARAMS):
         got = b["components"]["calibration"][name]
         assert sd[k] > 0 and got > 0
@@ -424,3 +451,44 @@ def test_lamps_are_solved_again_with_the_geometry_they_are_calibrated_with(rig):
         for k in ("theta_in", "theta_out", "theta_h"):
             assert np.max(np.abs(a1[k][ok] - a0[k][ok])) < 1e-7, (led, k)
         assert np.max(np.abs(held["theta_in"][ok] - a0["theta_in"][ok])) > 1e-3
+
+
+def test_a_holder_pose_error_moves_the_lamps_against_sample_and_camera(rig):
+    """The sample capture's holder pose error (EB.CalibrationDraws, ``captures=("sample",)``) is
+    what the pipeline makes of a holder solved off by (dR, dt) while the cylinder's markers give
+    its pose right: the lamps are given in the holder's frame, so every lamp sits, against the
+    true sample and camera, at ``dR L + R_hold^T dt`` instead of ``L``. The draws' angles must
+    equal the angles of the draw's geometry without the move and with each lamp so moved - an
+    identity of rigid motions, exact up to rounding (bound 1e-9 rad against angle changes of
+    ~1e-3 rad from a 0.2 degree turn)."""
+    from test_calibration_uncertainty import _board_views
+
+    from glossrig.core.calibration.intrinsics import board_points
+    from glossrig.core.fitting import calibration_uncertainty as cu
+
+    views = _board_views()
+    cv = cu.CameraViews(obj=board_points((9, 6), 25.0), rvecs=[v[0] for v in views], tvecs=[v[1] for v in views],
+                        rms_px=0.15)
+    px = cov.pixel_geometry(rig, SCALE)
+    draws = EB.CalibrationDraws(rig, px, cv, 3, 7, pose_rot_deg=(0.1, 0.2, 0.05), pose_t_mm=(0.05, 0.1, 0.2),
+                                captures=("sample",))
+    assert draws.moves_sample and all(m is None for m in draws.lamp_capture_moves)
+    moves = draws._pose_moves(np.random.default_rng([7, 5, 1]))     # rotation 1's stream
+    n = draws.u.size
+    for led in LEDS:
+        nominal, drawn = draws.angles(led, 1)
+        lamp = np.asarray(rig.led(led).position, float)
+        for (K, dist, poses), resolved, got, ((dR, dt), _cyl) in zip(draws.draws, draws.resolved_shifts(led), drawn,
+                                                                      moves):
+            Rh = poses[0.0][0][0]
+            moved = dR @ (lamp + resolved) + Rh.T @ dt
+            want = cu.row_angles(draws.cal, draws.u, draws.v, np.full(n, led), np.zeros(n), K=K, dist=dist,
+                                 poses=poses, lamps={led: moved})
+            held = cu.row_angles(draws.cal, draws.u, draws.v, np.full(n, led), np.zeros(n), K=K, dist=dist,
+                                 poses=poses, lamps={led: lamp + resolved})
+            ok = want["valid"] & np.isfinite(got["theta_in"])
+            assert ok.sum() > 1000
+            for k in ("theta_in", "phi_in", "theta_out", "theta_h", "phi_h"):
+                assert np.max(np.abs(got[k][ok] - want[k][ok])) < 1e-9, (led, k)
+            assert np.max(np.abs(held["theta_in"][ok] - want["theta_in"][ok])) > 1e-3
+

@@ -211,9 +211,12 @@ def add_errors_arguments(p) -> None:
                         "glossrig.core.calibration.lamps.LAMP_STD_MM without --camera; 0 with --camera, whose draws "
                         "solve the lamps again as `calibrate lamps` would)")
     p.add_argument("--pose-rot", type=float, default=None, metavar="DEG",
-                   help="budget: sample pose rotation uncertainty per axis, degrees (default 0.05 x 0.25 / --scale)")
+                   help="budget: sample pose rotation uncertainty per axis, degrees (default 0.05 x 0.25 / --scale; "
+                        "with --camera each marker's measured pose-step error per axis, "
+                        "glossrig.core.design.error_budget.HOLDER_POSE_NOISE_ROT_DEG, the figure given for every axis)")
     p.add_argument("--pose-t", type=float, default=None, metavar="MM",
-                   help="budget: sample pose translation uncertainty per axis, mm (default 0.15 x 0.25 / --scale)")
+                   help="budget: sample pose translation uncertainty per axis, mm (default 0.15 x 0.25 / --scale; "
+                        "with --camera as --pose-rot)")
     p.add_argument("--led-aperture", type=float, default=None, metavar="RAD",
                    help="budget: the LEDs' angular diameter seen from the sample (default 0.0025; 0 for points)")
     p.add_argument("--camera", default=None, metavar="CAMERA_JSON",

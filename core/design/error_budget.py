@@ -49,8 +49,10 @@ component's variance:
   carry the intrinsics' error as far as a rigid move can); or, given a camera calibration's
   views (``camera_views``), the intrinsics drawn as ``glossrig fit`` draws them
   (:class:`CalibrationDraws`, GUM-S1: the pixels' rays cast again through each drawn camera
-  with the poses re-solved from the markers) and the poses' own noise
-  (:data:`POSE_NOISE_ROT_DEG`, :data:`POSE_NOISE_T_MM`); the reference's albedo
+  with the poses re-solved from the markers) and the marker poses' own errors - the holder's
+  (the lamps' frame) and the cylinder's, per axis (:data:`HOLDER_POSE_NOISE_ROT_DEG` and its
+  companions, measured on the twin), the sample capture's drawn afresh for every rotation and
+  refitted with the rest of the draw; the reference's albedo
   (:data:`~glossrig.core.fitting.calibration_uncertainty.ALBEDO_U_REL` of rho_d and rho_s)
   and its angular variation (``df = f h (1 - cos theta - mean)`` for ``theta_in`` and
   ``theta_out``, ``h`` of :data:`~glossrig.core.fitting.calibration_uncertainty.ALBEDO_ANGULAR_U_REL`);
@@ -60,11 +62,15 @@ component's variance:
 Combined: root sum of squares. Assumptions: the linearisation (errors small against the
 lobe width; not for the intrinsics draws, which are refitted), the point model (the fit's
 footprint model changes the weights' effect little; the intrinsics draws refit the
-footprint-averaged model where the fit would, :meth:`_Sums.intrinsics_variance`), no peak clipping (eq. 6.5), the green
+footprint-averaged model where the fit would, weighing each row by the noise of the value it
+holds, :meth:`_Sums.intrinsics_variance`), no peak clipping (eq. 6.5), the green
 channel's noise (in the weights a factor common to all rows, which cancels; the
-luminance's noise is ~0.8 of it), the rigid-motion model of the pose error (a pixel's ray
-is not re-intersected), and, without camera views, lamps drawn independently of the geometry
-(with them, the lamp capture's pose noise taken as the sample capture's). Without camera views
+luminance's noise is ~0.8 of it), without camera views the rigid-motion model of the pose
+error (a pixel's ray is not re-intersected) and lamps drawn independently of the geometry
+(with them, the pose errors of the lamp capture and of each rotation of the sample capture
+drawn independently of one another, at the sizes measured on the twin). `design errors` against
+the twin's RMS errors over 16 calibrations (validation/uncertainty_coverage.md, section 0''): 34
+of the 35 ratios of the Table 9.1 materials within [0.5, 2]. Without camera views
 the rigid pose figures fall short for rho_s on the twin: its calibration error there is
 ~3-5 times what they give, most of it the intrinsics' error acting at second order, which
 the refitted draws reproduce (validation/uncertainty_coverage.md, section 3).
@@ -76,6 +82,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
@@ -97,12 +104,34 @@ GAIN_REL = 0.005
 POSE_ROT_DEG = 0.05
 POSE_T_MM = 0.15
 POSE_SCALE = 0.25
-#: The same where the intrinsics are drawn themselves (``camera_views``): the poses' own noise,
-#: what the marker edge fit states (the coverage study's twin calibrations at scale 0.1: RMS
-#: over the holder axes 0.07 deg and 0.06 mm; validation/uncertainty_coverage.md, section 3),
-#: at :data:`POSE_SCALE`.
-POSE_NOISE_ROT_DEG = 0.03
-POSE_NOISE_T_MM = 0.02
+#: Where the intrinsics are drawn themselves (``camera_views``): the marker poses' own error, what
+#: the pose step (thesis eq. 4.3-4.25: corner PnP, then the markers' raw edges) leaves with the
+#: camera known exactly, per marker - the holder's (whose frame the lamps are given in) and the
+#: cylinder's, each in the camera frame - and per axis: rotation about the marker's own axes
+#: (degrees, ``R_true^T R_solved``) and translation along the camera's (mm), at image scale
+#: :data:`POSE_NOISE_SCALE`, in proportion to the pixel size at other scales. Measured on the twin
+#: with its true intrinsics, RMS over 88 captures at scale 0.1 (their mean included): 16 of
+#: ``python -m validation.pose_scatter --scale 0.1 --per-axis --seeds 2,3,...,17`` (holder 0.075,
+#: 0.14, 0.0093 deg), the coverage study's 112 - 56 sample captures (0.061, 0.127, 0.0087 deg) and
+#: its 16 lamp captures (0.069, 0.116, 0.0070 deg) - validation/uncertainty_coverage.md, section 0''.
+#: The holder errs about its x and y axes by 1.2-1.3 times what its edge fit states (0.058, 0.10,
+#: 0.008 deg), 2-8 times as much as the cylinder, whose markers wrap around it. Its error is a turn
+#: about a point near its marker (the translations follow the turn: |correlation| 0.9-1.0), drawn
+#: here as independent turn and translation: the lamps, ~300 mm away, move by the turn ~0.7 mm, the
+#: independent translations add ~0.1 mm in quadrature. The cylinder's depth error is mostly a bias
+#: common to the captures (mean 0.11 of RMS 0.115 mm), drawn per capture here (its effect on the
+#: fitted parameters is small beside the holder's). A holder error moves the lamps against the
+#: sample and the camera: the coverage study's sample_0_6 of round 0, extracted with the twin's
+#: true camera and lamps, had its holder solved 0.36 deg off, its lobe turned by 0.38 deg and
+#: rho_s 2.0 % low; with the true poses too, 0.05 deg and 0.03 % (validation/uncertainty_coverage.md,
+#: section 0'). The lamp capture's holder error explains the lamp calibration's error across the
+#: holder (x; correlation 0.87 over its 16 rounds x 4 LEDs). The design's former figure, 0.075 deg
+#: and 0.05 mm per axis at scale 0.1 as a rigid move of the sample, was the edge fit's stated size.
+HOLDER_POSE_NOISE_ROT_DEG = (0.065, 0.128, 0.0085)
+HOLDER_POSE_NOISE_T_MM = (0.037, 0.063, 0.090)
+CYLINDER_POSE_NOISE_ROT_DEG = (0.029, 0.017, 0.0040)
+CYLINDER_POSE_NOISE_T_MM = (0.015, 0.0068, 0.115)
+POSE_NOISE_SCALE = 0.1
 COMPONENTS = ("noise", "model", "calibration", "footprint")
 
 
@@ -158,9 +187,18 @@ class CalibrationDraws:
     the lamp calibration would, from the sheet's nominal values (:data:`LAMP_SHEET`'s extended
     Ward, lit by the LED, at the design's pixels, at most :data:`LAMP_SHEET_ROWS` of them) under the
     drawn camera and poses,
-    the lamp capture's holder moved by its own pose noise (``pose_rot_deg`` about each holder
-    axis, ``pose_t_mm`` along each: the marker edge fit's, independent of the sample capture's),
-    and moves the lamp by the solution's change from the nominal geometry's solution. Measured
+    the lamp capture's holder and cylinder moved by their own pose errors (``pose_rot_deg`` about
+    each of the holder's axes, ``pose_t_mm`` along each camera axis, ``cylinder_rot_deg`` and
+    ``cylinder_t_mm`` the cylinder's; scalars or one figure per axis), and moves the lamp by the
+    solution's change from the nominal geometry's solution.
+
+    **The sample capture's own poses** are solved from its own calibration image (one per sample
+    rotation), so each draw moves them too, by errors of the same sizes drawn afresh for every
+    rotation, independent of the lamp capture's: the holder's pose (the lamps' frame) and the
+    cylinder's, each in the camera frame, as the pose step errs (:data:`HOLDER_POSE_NOISE_ROT_DEG`).
+    A holder error moves every lamp against the sample and the camera alike, so it is neither
+    a rigid move of the sample nor an error of each LED; its effect is refitted with the
+    intrinsics' (the lobe's response to a tenth of a degree is not linear for narrow lobes). Measured
     on the coverage study's eight scale-0.1 calibrations (validation/uncertainty_coverage.md,
     section 0): the lamps solved so under each round's own calibrated camera reproduce the
     actual lamp errors' y component (correlation 0.95; x 0.17, where the lamp capture's pose
@@ -171,10 +209,12 @@ class CalibrationDraws:
     common to every LED and the LED's own (:data:`~glossrig.core.fitting.calibration_uncertainty.LAMP_DRAW`;
     normal draws of their own random streams, so the camera draws do not depend on them).
     ``views``: a :class:`~glossrig.core.fitting.calibration_uncertainty.CameraViews` of a
-    calibration at the design's image size."""
+    calibration at the design's image size; ``captures``: whose pose errors are drawn, the lamp
+    capture's (``"lamps"``) and the sample capture's (``"sample"``)."""
 
     def __init__(self, rig, px: cov.PixelGeometry, views, n_draws: int, seed: int, lamp_std_mm: float = 0.0,
-                 pose_rot_deg: float = 0.0, pose_t_mm: float = 0.0):
+                 pose_rot_deg=0.0, pose_t_mm=0.0, cylinder_rot_deg=0.0, cylinder_t_mm=0.0,
+                 captures=("lamps", "sample")):
         import cv2
 
         from glossrig.core.calibration.markers import cylinder_marker_corners, holder_marker_corners
@@ -198,10 +238,14 @@ class CalibrationDraws:
                                         camera_views=views)
         rng = np.random.default_rng(seed)
         self.draws = [cu.draw_calibration(self.cal, rng, ("intrinsics",))[:3] for _ in range(n_draws)]
-        # the lamp capture's own holder pose error per draw (its own stream)
-        z = np.random.default_rng([seed, 3]).standard_normal((n_draws, 2, 3))
-        self.lamp_capture_moves = [(cu.rotation_from_vector(math.radians(pose_rot_deg) * a), pose_t_mm * b)
-                                   for a, b in z]
+        # the marker poses' own errors per axis: (holder rotation (rad), translation (mm), cylinder's)
+        self.pose_sd = tuple(np.broadcast_to(np.asarray(x, float), (3,)) * f for x, f in
+                             ((pose_rot_deg, math.pi / 180), (pose_t_mm, 1.0), (cylinder_rot_deg, math.pi / 180),
+                              (cylinder_t_mm, 1.0)))
+        self.n_draws, self.captures = n_draws, tuple(captures)
+        # the lamp capture's own pose errors per draw (their own stream)
+        self.lamp_capture_moves = self._pose_moves(np.random.default_rng([seed, 3])) if "lamps" in self.captures \
+            else [None] * n_draws
         # a further lamp error (cu.LAMP_DRAW): per draw a shift common to every LED and each LED's own,
         # from streams of their own (so the camera draws do not depend on them)
         self.lamp_std, self.seed = float(lamp_std_mm), seed
@@ -216,6 +260,29 @@ class CalibrationDraws:
         self._sheets: dict[int, tuple] = {}
         # pixel centres as row_angles casts them (u + 0.5: a Bayer block's corner there)
         self.u, self.v = px.u.astype(float) - 0.5, px.v.astype(float) - 0.5
+        self._nominal: dict[int, dict] = {}
+
+    def _pose_moves(self, rng) -> list[tuple]:
+        """Per draw ``((R, t) of the holder, (R, t) of the cylinder)``: each marker's pose error (the
+        rotation about its own axes, the translation in the camera frame), normal with the stated
+        standard deviations per axis (:data:`HOLDER_POSE_NOISE_ROT_DEG`)."""
+        from glossrig.core.fitting.calibration_uncertainty import rotation_from_vector
+
+        z = rng.standard_normal((self.n_draws, 4, 3)) * np.asarray(self.pose_sd)
+        return [((rotation_from_vector(a), b), (rotation_from_vector(c), d)) for a, b, c, d in z]
+
+    @property
+    def moves_sample(self) -> bool:
+        """Whether the sample capture's poses are drawn (asked for, and a pose error stated)."""
+        return "sample" in self.captures and any(bool(np.any(x > 0)) for x in self.pose_sd)
+
+    @staticmethod
+    def _move(poses: tuple, move) -> tuple:
+        """``((R_hold, t_hold), (R_cyl, t_cyl))`` (camera frame) with each marker's pose moved by
+        ``move`` (:meth:`_pose_moves`: ``R @ dR``, ``t + dt``, as the fit's draws move a pose)."""
+        if move is None:
+            return poses
+        return tuple((R @ dR, t + dt) for (R, t), (dR, dt) in zip(poses, move))
 
     def _sheet(self, led: int):
         """The lamp calibration's data for ``led`` at the nominal geometry: the sheet's pixels (a
@@ -236,14 +303,12 @@ class CalibrationDraws:
     def solve_lamp(self, led: int, K, dist, poses, move=None) -> np.ndarray:
         """The lamp position ``glossrig calibrate lamps`` finds (holder frame, mm) from the sheet's
         nominal values of ``led`` (:meth:`_sheet`) under the camera ``K, dist`` and rotation 0's
-        ``poses`` ((R_hold, t_hold), (R_cyl, t_cyl)), camera frame), the holder moved by ``move``
-        = (R about its own axes, t) where given (as :func:`~glossrig.core.fitting.calibration_uncertainty._draw_pose`)."""
+        ``poses`` ((R_hold, t_hold), (R_cyl, t_cyl)), camera frame), the markers moved by ``move``
+        where given (:meth:`_move`, as :func:`~glossrig.core.fitting.calibration_uncertainty._draw_pose`)."""
         from glossrig.core.calibration.lamps import lamp_under_geometry
 
         u, v, values, distance = self._sheet(led)
-        (Rh, th), (Rc, tc) = poses
-        if move is not None:
-            Rh, th = Rh @ move[0], th + move[1]
+        (Rh, th), (Rc, tc) = self._move(poses, move)
         return lamp_under_geometry(K, dist, self.cal.size, ((Rh, th), (Rc, tc)), self.cal.radius, self.cal.height,
                                    u, v, values, distance, True)
 
@@ -258,9 +323,12 @@ class CalibrationDraws:
                                             for (K, d, poses), mv in zip(self.draws, self.lamp_capture_moves)])
         return self._resolved[led]
 
-    def angles(self, led: int) -> tuple[dict, list[dict]]:
-        """The nominal and each draw's BRDF angles (radians, rotation 0) of every pixel of the
-        design for ``led``; NaN where a ray misses or a direction is below the horizon."""
+    def angles(self, led: int, rotation_index: int = 0) -> tuple[dict, list[dict]]:
+        """The nominal and each draw's BRDF angles (radians, rotation 0's frame) of every pixel of
+        the design for ``led``, the sample capture's poses moved by the draw's errors for the
+        sample rotation numbered ``rotation_index`` (each rotation's calibration image is solved
+        on its own: :meth:`_pose_moves` of a stream per rotation); NaN where a ray misses or a
+        direction is below the horizon."""
         from glossrig.core.fitting import calibration_uncertainty as cu
 
         lamp = np.asarray(self.rig.led(led).position, float)
@@ -272,13 +340,17 @@ class CalibrationDraws:
             ok = a["valid"]
             return {k: np.where(ok, a[k], np.nan) for k in _ANGLES}
 
-        nominal = deg(cu.row_angles(self.cal, *args, lamps=lamps))
+        if led not in self._nominal:
+            self._nominal[led] = deg(cu.row_angles(self.cal, *args, lamps=lamps))
         own = self.lamp_std * np.sqrt(1 - self.common_fraction) * \
             np.random.default_rng([self.seed, 2, int(led)]).standard_normal((len(self.draws), 3))
-        drawn = [deg(cu.row_angles(self.cal, *args, K=K, dist=d, poses=p,
+        moves = self._pose_moves(np.random.default_rng([self.seed, 5, int(rotation_index)])) if self.moves_sample \
+            else [None] * len(self.draws)
+        drawn = [deg(cu.row_angles(self.cal, *args, K=K, dist=d, poses={0.0: self._move(p[0.0], mv)},
                                    lamps={int(led): lamp + resolved + shift + o}))
-                 for (K, d, p), resolved, shift, o in zip(self.draws, self.resolved_shifts(led), self.lamp_shifts, own)]
-        return nominal, drawn
+                 for (K, d, p), resolved, shift, o, mv in zip(self.draws, self.resolved_shifts(led), self.lamp_shifts,
+                                                              own, moves)]
+        return self._nominal[led], drawn
 
 
 def _by_param(x, mask) -> dict:
@@ -308,6 +380,17 @@ def ratio_sigma(nm, f, cos_in, dist_mm, reference_f: float) -> np.ndarray:
     f = np.asarray(f, float)
     return _ratio(f, nm.sigma(f, cos_in, dist_mm), nm.sigma(np.full(f.shape, reference_f), cos_in, dist_mm),
                   reference_f)
+
+
+def _table_weights(nm, cos_in, dist_mm, ref_sigma, reference_f: float, pixels, f) -> np.ndarray:
+    """The samples table's weight of rows holding the values ``f``: ``pixels / s^2``, ``s`` the
+    sensor noise of the ratio of ``f`` to the reference's (:func:`_ratio`, :func:`_sigmas`
+    without the LED term, as ``glossrig extract`` weights a row by its HDR variance); 0 where
+    ``f`` is not finite or ``s`` not positive."""
+    f = np.asarray(f, float)
+    s_tab = _ratio(f, _sigmas(nm, f, cos_in, dist_mm)[1], ref_sigma, reference_f)
+    ok = np.isfinite(s_tab) & (s_tab > 0)
+    return np.where(ok, pixels / np.where(ok, s_tab, 1.0) ** 2, 0.0)
 
 
 def _ratio(f: np.ndarray, sigma_f: np.ndarray, sigma_ref: np.ndarray, reference_f: float) -> np.ndarray:
@@ -362,9 +445,21 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
     # with camera views the lamps are solved again under each camera draw (CalibrationDraws): no
     # independent lamp error unless one is stated
     lamp_std = (LAMP_STD_MM if camera_views is None else 0.0) if lamp_std_mm is None else float(lamp_std_mm)
-    rot0, t0 = (POSE_ROT_DEG, POSE_T_MM) if camera_views is None else (POSE_NOISE_ROT_DEG, POSE_NOISE_T_MM)
-    pose_rot_deg = rot0 * POSE_SCALE / scale if pose_rot_deg is None else float(pose_rot_deg)
-    pose_t_mm = t0 * POSE_SCALE / scale if pose_t_mm is None else float(pose_t_mm)
+    # the sample's pose: without camera views a rigid move per holder axis (linearised, carrying the
+    # intrinsics' error); with them each marker's own pose error per axis, drawn with the camera and
+    # refitted (CalibrationDraws); a stated figure is taken for every axis of both markers
+    if camera_views is None:
+        pose_rot_deg = POSE_ROT_DEG * POSE_SCALE / scale if pose_rot_deg is None else float(pose_rot_deg)
+        pose_t_mm = POSE_T_MM * POSE_SCALE / scale if pose_t_mm is None else float(pose_t_mm)
+        marker_sd = None
+    else:
+        f = POSE_NOISE_SCALE / scale
+        marker_sd = {k: f * np.asarray(v, float) if given is None else np.full(3, float(given)) for k, v, given in
+                     (("pose_rot_deg", HOLDER_POSE_NOISE_ROT_DEG, pose_rot_deg),
+                      ("pose_t_mm", HOLDER_POSE_NOISE_T_MM, pose_t_mm),
+                      ("cylinder_rot_deg", CYLINDER_POSE_NOISE_ROT_DEG, pose_rot_deg),
+                      ("cylinder_t_mm", CYLINDER_POSE_NOISE_T_MM, pose_t_mm))}
+        pose_rot_deg = pose_t_mm = 0.0          # no rigid move: the poses are in the draws
     albedo_u = ALBEDO_U_REL if albedo_u is None else float(albedo_u)
     angular_u = ALBEDO_ANGULAR_U_REL if angular_u is None else float(angular_u)
     aperture = DEFAULT_LED_APERTURE if led_aperture is None else float(led_aperture)
@@ -374,16 +469,18 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
     ref_f = ref_albedo / math.pi
     px = cov.pixel_geometry(rig, scale)
     nm = fi.noise_model(noise, rig)
+    intr = CalibrationDraws(rig, px, camera_views, intrinsics_draws, seed, lamp_std, **marker_sd) \
+        if marker_sd is not None else None
     rot_rad = math.radians(pose_rot_deg)
     moves = [(f"pose_rot{k}", rotation_from_vector(rot_rad * e), None) for k, e in enumerate(np.eye(3))] + \
-            [(f"pose_t{k}", None, pose_t_mm * e) for k, e in enumerate(np.eye(3))]
-    intr = CalibrationDraws(rig, px, camera_views, intrinsics_draws, seed, lamp_std, pose_rot_deg, pose_t_mm) \
-        if camera_views is not None else None
+            [(f"pose_t{k}", None, pose_t_mm * e) for k, e in enumerate(np.eye(3))] if intr is None else []
     acc = {label: _Sums() for label, _ in materials}
     for i in led_ids:
         lamp = np.asarray(rig.led(i).position, float)
         a_all = cov.direction_angles(px, lamp, half=True)
-        a_intr = intr.angles(i) if intr is not None else None
+        # the draws' angles per sample rotation (its own pose errors), or one set for all without them
+        a_intr = None if intr is None else [intr.angles(i, k) for k in range(len(rotations))] if intr.moves_sample \
+            else [intr.angles(i)] * len(rotations)
         slope_jac: dict[float, np.ndarray] = {}         # per rotation, for the intrinsics refits' footprint
         for label, p in materials:
             s = acc[label]
@@ -401,7 +498,7 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
             # the noise model at these rows, evaluated once: the reference's (every rotation alike)
             # and, per rotation, the sample's, with and without the LED term
             ref_sig, ref_sig_w = _sigmas(nm, np.full(rows.size, ref_f), a["cos_in"], a["dist_in"])
-            for r in rotations:
+            for ri, r in enumerate(rotations):
                 f, J = _ward(a, r, p)
                 sig, sig_w = _sigmas(nm, f, a["cos_in"], a["dist_in"])
                 s.info += fi.gain_marginal_information(J, sig, f, bound_gain_rel, w)
@@ -423,10 +520,13 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
                 if a_intr is not None:
                     # the refits' rows thinned evenly to INTRINSICS_ROWS in all, each standing for the rest
                     step = max(1, math.ceil(rows.size * len(led_ids) * len(rotations) / INTRINSICS_ROWS))
-                    sw = (w / np.where(ok, s_tab, 1.0) ** 2 * ok)[::step] * step
+                    # the table's weights at the values a row holds (the refits' data: the point
+                    # model's or the footprint average, _Sums.intrinsics_variance)
+                    weights = partial(_table_weights, nm, a["cos_in"][::step], a["dist_in"][::step],
+                                      ref_sig_w[::step], ref_f, w[::step] * step)
                     if r not in slope_jac:
                         slope_jac[r] = pixel_slope_jacobian(px, a_all, r)
-                    s.add_intrinsics_rows(a_intr, rows[::step], r, p, sw, slope_jac[r][rows[::step]])
+                    s.add_intrinsics_rows(a_intr[ri], rows[::step], r, p, weights, slope_jac[r][rows[::step]])
                 s.ang_f += JW.T @ f
                 for k, c in enumerate((a["cos_in"], a["cos_out"])):
                     s.ang_fg[k] += JW.T @ (f * (1.0 - c))
@@ -444,11 +544,14 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
               "weight of eq. 4.82, s the sensor noise of the sample and the reference (the table's weight)",
               "reference_albedo": ref_albedo, "gain_rel_per_led_rotation": gain_rel,
               "lamp_std_mm_per_axis": lamp_std, "pose_rot_deg_per_axis": pose_rot_deg,
-              "pose_t_mm_per_axis": pose_t_mm, "albedo_u_rel": albedo_u, "albedo_angular_u_rel": angular_u,
+              "pose_t_mm_per_axis": pose_t_mm,
+              "marker_pose_noise": None if marker_sd is None else {k: [float(x) for x in v] for k, v in marker_sd.items()},
+              "albedo_u_rel": albedo_u, "albedo_angular_u_rel": angular_u,
               "led_aperture_rad": aperture,
               "intrinsics": (f"{intrinsics_draws} draws of the camera calibration (parametric bootstrap of its "
                              f"{len(camera_views.rvecs)} views, reprojection RMS {camera_views.rms_px:g} px), poses "
-                             f"re-solved from the markers, the lamps solved again by the lamp calibration under each "
+                             f"re-solved from the markers and moved by the pose step's own errors (marker_pose_noise), "
+                             f"the sample's for each rotation, the lamps solved again by the lamp calibration under each "
                              f"draw ({LAMP_SHEET}, its capture's holder moved by the pose noise) plus {lamp_std:g} mm "
                              "per axis independent of the geometry (cu.LAMP_DRAW), refitted" if camera_views is not None else
                              "not drawn (no camera calibration views given): carried by the pose figures")}
@@ -494,10 +597,11 @@ class _Sums:
         self.intr_rows: list[tuple] = []
         self.footprint_refits = False           # whether intrinsics_variance refitted the footprint model
 
-    def add_intrinsics_rows(self, a_intr, rows, rotation: float, p: WardParams, table_weight, slope_jac) -> None:
+    def add_intrinsics_rows(self, a_intr, rows, rotation: float, p: WardParams, table_weights, slope_jac) -> None:
         """Keep one (LED, rotation)'s rows for :meth:`intrinsics_variance`: the nominal and
         drawn angles (azimuths turned by the sample rotation, thesis eq. 4.62), the nominal
-        data (the point model of ``p``), the table's weights (pixel count / s^2) and the rows'
+        data (the point model of ``p``), the table's weights as a function of the values the
+        rows hold (``table_weights(f)``: pixel count / s^2, :func:`_table_weights`) and the rows'
         slope Jacobians (:func:`pixel_slope_jacobian`)."""
         nominal, drawn = a_intr
         r = np.radians(rotation)
@@ -510,18 +614,24 @@ class _Sums:
 
         nom = take(nominal)
         y = _ward({k: np.degrees(v) for k, v in nom.items()}, 0.0, p)[0]
-        self.intr_rows.append((nom, y, table_weight, [take(a) for a in drawn], slope_jac))
+        self.intr_rows.append((nom, y, table_weights, [take(a) for a in drawn], slope_jac))
 
     def intrinsics_variance(self, p: WardParams) -> np.ndarray:
-        """Variance of the fitted parameters over the calibration draws (:class:`CalibrationDraws`:
-        intrinsics, poses re-solved with them, the lamps solved again under them; GUM-S1): the
-        nominal data refitted at each draw's angles by the pipeline's weighted least squares (the
+        """Mean square of the fitted parameters' errors over the calibration draws
+        (:class:`CalibrationDraws`: intrinsics, poses re-solved with them and moved by the pose
+        step's own errors, the lamps solved again under them; GUM-S1): each error the nominal
+        data refitted at the draw's angles by the pipeline's weighted least squares (the
         Gauss-Newton refit of :mod:`glossrig.core.fitting.calibration_uncertainty`, eq.
         4.81-4.82, warm-started), minus the same refit at the nominal angles; a row a draw
         loses (its ray misses, a direction below the horizon) is left out of that refit. Not
         linearised: at a calibration's noise the drawn angle errors (~0.1 degree) move rho_s
         and the alphas at second order as much as at first (a blur-like bias), which a
-        linearisation misses (tests/test_design_budget.py).
+        linearisation misses (tests/test_design_budget.py). That bias is an error of every
+        measurement, so it is kept: the mean square about 0 (variance plus squared mean), not the
+        variance about the draws' mean. The sample capture's pose errors make it: sample_0_6 at
+        scale 0.1 (LEDs 8-11), the twin's solved poses against its true ones, true camera and
+        lamps, rho_s -2.0 % to +0.01 % over 7 rounds, 6 of them low (validation/uncertainty_coverage.md,
+        section 0); the draws' variance alone gave 0.53 %, their mean square 0.73 %, the rounds' 0.79 %.
 
         **The footprint, as the fit decides it** (:func:`~glossrig.core.fitting.calibration_uncertainty.calibration_component`
         with ``footprint``): the data are the lobe averaged over each row's footprint (a 2x2 Bayer
@@ -535,25 +645,56 @@ class _Sums:
         the calibration far more strongly: brushed_original at scale 0.1 (alpha_y 0.0106), its
         twin measurements' rows refitted at the true against the calibrated geometry moved
         alpha_y by -8.4 % and -12.1 % (rounds 1 and 3) with the footprint model, -1.5 % and
-        -2.9 % with the point model; the fits' actual errors were -8.4 % and -11.5 %."""
+        -2.9 % with the point model; the fits' actual errors were -8.4 % and -11.5 %. The
+        footprint average is taken with the pixel quadrature the fit chooses for the lobe
+        (:meth:`~glossrig.core.fitting.footprint_model.SampleFootprint.orders_for`).
+
+        **The weights are the table's at the values its rows hold** (:func:`_table_weights`):
+        ``glossrig extract`` weighs a row by the variance of what it measured, the footprint
+        average where the refits fit the footprint model. Weighing such a row by the point
+        model's value instead (as the design did before 2026-11-25) over-weights the flanks of a
+        lobe as narrow as a footprint, where the point model falls far below the average and
+        the refit answers a geometry error most steeply. Measured on brushed_original at scale
+        0.1, the holder pose error of the coverage study's round-0 capture (0.25 degree): its
+        capture extracted and fitted with the solved against the twin's true poses (true camera
+        and lamps) moved rho_s, alpha_x, alpha_y by 5.5, 0.33, 3.2 %; this refit on that
+        capture's own rows by 4.6, 0.24, 2.7 % with the table's weights and by 15.9, 2.0, 9.4 %
+        with weights 1 / f^2 at the point model's values f; the design's rows by 16, 3.0, 10 % before this
+        change and 3.5, 0.04, 1.7 % after it (rounds 3 and 7: actual 3.8, 0.50, 2.5 % and 7.5,
+        0.97, 5.2 %; the design 2.7, 0.29, 1.4 % and 5.0, 0.49, 3.1 %)."""
         from glossrig.core.fitting.calibration_uncertainty import _point_model_departs, _refit, _reported
         from glossrig.core.fitting.footprint_model import footprint_eval, sample_footprint
         from glossrig.core.models.ward import ward_geometry
 
         nom = {k: np.concatenate([e[0][k] for e in self.intr_rows]) for k in _ANGLES}
         y = np.concatenate([e[1] for e in self.intr_rows])
-        sw = np.concatenate([e[2] for e in self.intr_rows])
         fp_all = sample_footprint(np.concatenate([e[4] for e in self.intr_rows]))
-        ok0 = np.isfinite(nom["theta_in"]) & np.isfinite(y) & (sw > 0)
         x0 = solver_params(p)
-        n0 = {k: v[ok0] for k, v in nom.items()}
-        fp0 = fp_all.take(np.flatnonzero(ok0))
-        y_fp = footprint_eval(ward_geometry(n0["theta_in"], n0["theta_out"], n0["theta_h"], n0["phi_h"]), fp0, x0,
-                              log_alpha=True)
-        point = _refit(n0, y_fp, sw[ok0], x0, "mirror", None)
+        # the footprint average of the lobe at every row (the fit's pixel quadrature for it)
+        have = np.isfinite(nom["theta_in"]) & np.isfinite(y)
+        geo = ward_geometry(*(nom[k][have] for k in ("theta_in", "theta_out", "theta_h", "phi_h")))
+        fp_have = fp_all.take(np.flatnonzero(have))
+        fp_have = fp_have.with_orders(fp_have.orders_for(geo, x0, log_alpha=True))
+        y_fp = np.full(y.size, np.nan)
+        y_fp[have] = footprint_eval(geo, fp_have, x0, log_alpha=True)
+        fp_all = fp_all.with_orders(fp_have.orders)
+        bounds = np.cumsum([0] + [e[1].size for e in self.intr_rows])
+
+        def table_weights(values):
+            # the table's weight of each row is that of the value it holds (_table_weights)
+            return np.concatenate([e[2](values[a:b]) for e, a, b in zip(self.intr_rows, bounds[:-1], bounds[1:])])
+
+        sw_fp = table_weights(y_fp)
+        ok_fp = have & (sw_fp > 0)
+        point = _refit({k: v[ok_fp] for k, v in nom.items()}, y_fp[ok_fp], sw_fp[ok_fp], x0, "mirror", None)
         use_fp = _point_model_departs(_reported(point, x0), x0)
         self.footprint_refits = use_fp
-        data = y_fp if use_fp else y[ok0]
+        data_all = y_fp if use_fp else y
+        sw = sw_fp if use_fp else table_weights(y)
+        ok0 = have & (sw > 0)
+        n0 = {k: v[ok0] for k, v in nom.items()}
+        fp0 = fp_all.take(np.flatnonzero(ok0))
+        data = data_all[ok0]
         base = _refit(n0, data, sw[ok0], x0, "mirror", None, fp=fp0 if use_fp else None)
         shifts = []
         for d in range(len(self.intr_rows[0][3])):
@@ -562,7 +703,7 @@ class _Sums:
             x = _refit({k: v[ok0][ok] for k, v in ang.items()}, data[ok], sw[ok0][ok], base, "mirror", None,
                        fp=fp0.take(np.flatnonzero(ok)) if use_fp else None)
             shifts.append(_reported(x, x0) - _reported(base, x0))
-        return np.asarray(shifts).var(axis=0, ddof=1)
+        return np.mean(np.square(shifts), axis=0)
 
 
 def pixel_slope_jacobian(px: cov.PixelGeometry, a: dict, rotation: float) -> np.ndarray:
