@@ -150,7 +150,10 @@ def run(args) -> int:
                        footprint=False if args.no_footprint else None, cfa=args.cfa, led_aperture=args.led_aperture,
                        calibration=calibration)
     if calibration is None:
-        add_calibration_component(args, df, mfit, log)
+        add_calibration_component(df, mfit, log, draws=args.calibration_draws, seed=args.seed,
+                                  weighting=args.weighting, clip=args.clip,
+                                  use_weight_column=not args.ignore_weight_column, camera=args.camera,
+                                  lamps=args.lamps, capture=args.capture)
     write_fit_json(mfit, out, provenance=_provenance(args, src, channels, df))
     if log:
         log(f"wrote {out}")
@@ -208,7 +211,7 @@ def _calibration_uncertainty(path) -> dict | None:
     return doc
 
 
-def _calibration_files(args, df) -> tuple[dict | None, str]:
+def _calibration_files(df, camera, lamps, capture) -> tuple[dict | None, str]:
     """camera.json, lamps.json and the sample capture for the calibration component: the
     options, else the paths the samples table's provenance records; (None, why) if any
     is missing."""
@@ -220,8 +223,7 @@ def _calibration_files(args, df) -> tuple[dict | None, str]:
         e = prov.get(key) or {}
         return e.get("resolved") or e.get("path")
 
-    files = {"camera": pick(args.camera, "camera"), "lamps": pick(args.lamps, "lamps"),
-             "capture": pick(args.capture, "sample")}
+    files = {"camera": pick(camera, "camera"), "lamps": pick(lamps, "lamps"), "capture": pick(capture, "sample")}
     lacking = [k for k, v in files.items() if not v or not Path(v).exists()]
     if lacking:
         return None, (f"calibration not included: {', '.join(lacking)} not found (give --camera, --lamps, --capture "
@@ -229,19 +231,22 @@ def _calibration_files(args, df) -> tuple[dict | None, str]:
     return files, ""
 
 
-def add_calibration_component(args, df, mfit, log) -> None:
+def add_calibration_component(df, mfit, log, *, draws: int, seed: int, weighting: str, clip, use_weight_column: bool,
+                              camera=None, lamps=None, capture=None) -> None:
     """Each channel's budget gets the calibration component (shared with ``glossrig measure``'s fit step)
-    (:mod:`glossrig.core.fitting.calibration_uncertainty`) where the calibration files
-    can be found; else its ``omitted`` says why."""
+    (:mod:`glossrig.core.fitting.calibration_uncertainty`: ``draws`` Monte Carlo draws refitted with the
+    fit's ``weighting``, ``clip`` and weight column) where the calibration files - ``camera``, ``lamps``,
+    ``capture``, else those the samples table's provenance names - can be found; else its ``omitted``
+    says why."""
     from glossrig.core.fitting.calibration_uncertainty import (add_calibration, calibration_component, load_inputs,
                                                               recorded_poses)
 
-    if args.calibration_draws == 0:
+    if draws == 0:
         files, why = None, "calibration not included (--calibration-draws 0)"
-    elif args.calibration_draws < 2:
-        raise InputError(f"--calibration-draws must be 0 or >= 2, got {args.calibration_draws}")
+    elif draws < 2:
+        raise InputError(f"--calibration-draws must be 0 or >= 2, got {draws}")
     else:
-        files, why = _calibration_files(args, df)
+        files, why = _calibration_files(df, camera, lamps, capture)
     if files is None:
         for f in mfit.fits.values():
             if f.uncertainty is not None:
@@ -251,13 +256,13 @@ def add_calibration_component(args, df, mfit, log) -> None:
     rotations = sorted(df["rotation"].unique())
     solved, poses_from = recorded_poses(df.attrs.get("poses"), files["camera"], files["capture"], rotations)
     if log:
-        log(f"calibration component: {args.calibration_draws} draws (poses of {files['capture']}: {poses_from})")
+        log(f"calibration component: {draws} draws (poses of {files['capture']}: {poses_from})")
     cal = load_inputs(files["camera"], files["lamps"], files["capture"], rotations, solved=solved)
     if log:
         log(f"calibration component: lamps {cal.lamp_draws_note}")
     comp = calibration_component(df, {c: f.params for c, f in mfit.fits.items()}, cal,
-                                 n_draws=args.calibration_draws, seed=args.seed, weighting=args.weighting,
-                                 clip=args.clip, use_weight_column=not args.ignore_weight_column,
+                                 n_draws=draws, seed=seed, weighting=weighting, clip=clip,
+                                 use_weight_column=use_weight_column,
                                  footprint=any((f.footprint or {}).get("model") == "footprint-averaged"
                                                for f in mfit.fits.values()))
     for c, f in mfit.fits.items():

@@ -222,8 +222,6 @@ def _fit(samples_path, fit_path, log) -> None:
     calibration component drawn from this measurement's camera.json, lamps.json and sample capture
     (the ones the samples table's provenance names), as ``glossrig fit`` adds it
     (:func:`glossrig.cli.verbs.fit.add_calibration_component`)."""
-    from argparse import Namespace
-
     from glossrig.cli.verbs.fit import add_calibration_component
     from glossrig.core.fitting.export import write_fit_json
     from glossrig.core.fitting.fit import CHANNELS, fit_samples
@@ -235,10 +233,8 @@ def _fit(samples_path, fit_path, log) -> None:
     mfit = fit_samples(df, channels=CHANNELS, weighting=o["weighting"], clip=o["clip"], clip_model=o["clip_model"],
                        use_weight_column=o["use_weight_column"], source=str(samples_path), n_starts=o["n_starts"],
                        seed=o["seed"], log=log)
-    add_calibration_component(Namespace(calibration_draws=o["calibration_draws"], seed=o["seed"],
-                                         weighting=o["weighting"], clip=o["clip"],
-                                         ignore_weight_column=not o["use_weight_column"], camera=None, lamps=None,
-                                         capture=None), df, mfit, log)
+    add_calibration_component(df, mfit, log, draws=o["calibration_draws"], seed=o["seed"], weighting=o["weighting"],
+                              clip=o["clip"], use_weight_column=o["use_weight_column"])
     prov = provenance({"samples": samples_path}, {"channels": list(CHANNELS), **o}, tool="glossrig measure (fit)")
     prov["inputs"]["samples"]["provenance"] = df.attrs.get("provenance")
     write_fit_json(mfit, fit_path, provenance=prov)
