@@ -191,7 +191,7 @@ def test_design_errors_cli_states_a_usable_budget(tmp_path, capsys, rig):
     base = ["design", "errors", "--rig", "thesis_rig.toml", "--materials", "sample_2_6", "--leds", "8,10",
             "--rotations", "0", "--scale", "0.05", "--pose-rot", "0.06", "--pose-t", "0.04"]
     docs, printed = {}, {}
-    for name, extra in (("plain", []), ("camera", ["--camera", str(cam)])):
+    for name, extra in (("plain", []), ("camera", ["--camera", str(cam), "--draws", "8"])):
         out = tmp_path / f"errors_{name}.json"
         assert main([*base, *extra, "--out", str(out)]) == 0
         captured = capsys.readouterr()
@@ -214,7 +214,8 @@ def test_design_errors_cli_states_a_usable_budget(tmp_path, capsys, rig):
             assert math.sqrt(sum(c * c for c in cells)) == pytest.approx(row[-1], rel=TABLE_ROUNDING), (name, k, row)
     with_cam = docs["camera"]["expected_uncertainty"]["sample_2_6"]
     without = docs["plain"]["expected_uncertainty"]["sample_2_6"]
-    assert "draws of the camera calibration" in with_cam["stated"]["intrinsics"]
+    assert "8 draws of the camera calibration" in with_cam["stated"]["intrinsics"]
+    assert with_cam["calibration_draws"] == 8 and 0 < max(with_cam["calibration_mc_rel_u"].values()) < 1
     assert "not drawn" in without["stated"]["intrinsics"]
     for k in fi.PARAMS:
         # the same pose, lamp, albedo figures: the difference of the variances is the draws'
@@ -232,6 +233,8 @@ def test_design_errors_cli_states_a_usable_budget(tmp_path, capsys, rig):
     assert main(["design", "errors", "--rig", "thesis_rig.toml", "--materials", "sample_2_6", "--leds", "8",
                  "--pose-rot", "-1", "--scale", "0.05"]) == 2
     assert "--pose-rot" in capsys.readouterr().err
+    assert main([*base, "--draws", "8"]) == 2
+    assert "--draws needs --camera" in capsys.readouterr().err
 
 
 #: A lobe wide against the scale-0.05 footprint (the point model's refit of its footprint-averaged
@@ -492,3 +495,56 @@ def test_a_holder_pose_error_moves_the_lamps_against_sample_and_camera(rig):
                 assert np.max(np.abs(got[k][ok] - want[k][ok])) < 1e-9, (led, k)
             assert np.max(np.abs(held["theta_in"][ok] - want["theta_in"][ok])) > 1e-3
 
+
+
+def test_calibration_draws_grow_until_their_monte_carlo_settles(rig, monkeypatch):
+    """The calibration draws are an adaptive Monte Carlo (GUM-S1 7.9, ``EB.budget_and_bound``): a
+    material whose combined figure is not yet known to ``mc_rel_tol`` gets twice the draws, the
+    earlier ones kept and pooled, up to ``mc_max_draws``. The pooled passes give exactly what one
+    pass over as many draws gives (the same random streams), a tolerance no figure meets stops at
+    the cap and says it did not settle, a tolerance every figure meets stops at the first pass; the
+    recorded Monte Carlo uncertainty is the draws' own: u(mean square) / (2 u_c^2) per parameter."""
+    from test_calibration_uncertainty import _board_views
+
+    from glossrig.core.calibration.intrinsics import board_points
+    from glossrig.core.fitting.calibration_uncertainty import CameraViews
+
+    views = _board_views()
+    cv = CameraViews(obj=board_points((9, 6), 25.0), rvecs=[v[0] for v in views], tvecs=[v[1] for v in views],
+                     rms_px=0.15)
+    monkeypatch.setattr(EB, "MC_START_DRAWS", 3)
+    kw = dict(rotations=[0.0], led_ids=[8], scale=SCALE, noise="relative:0.03", fisher_rows=ROWS, lamp_std_mm=0.0,
+              camera_views=cv, seed=5, **{**ONLY, "pose_rot_deg": None, "pose_t_mm": None})
+    mats = [("s", P), ("w", WIDE)]
+    capped = EB.design_budget(rig, mats, mc_rel_tol=0.0, mc_max_draws=12, **kw)
+    one_pass = EB.design_budget(rig, mats, intrinsics_draws=12, **kw)
+    loose = EB.design_budget(rig, mats, mc_rel_tol=math.inf, **kw)
+    # "exactly" up to OpenCV's calibrateCamera, which is not bit-reproducible from run to run (its
+    # threads): the same draw's camera differs by ~1e-7 relative and its lamp solution by ~1e-4 mm
+    # (of shifts ~1 mm), so a figure by ~1e-4 relative at most; an unpooled or mis-streamed draw
+    # would move it by its own Monte Carlo uncertainty (per cent)
+    for label, _ in mats:
+        c, o = capped[label], one_pass[label]
+        assert c["calibration_draws"] == 12 and c["calibration_mc_settled"] is False
+        assert "12 draws" in c["stated"]["intrinsics"]
+        assert loose[label]["calibration_draws"] == 3 and loose[label]["calibration_mc_settled"] is True
+        for k in fi.PARAMS:
+            assert c["combined"][k] == pytest.approx(o["combined"][k], rel=1e-3), (label, k)
+            assert c["calibration_mc_rel_u"][k] == pytest.approx(o["calibration_mc_rel_u"][k], rel=1e-2), (label, k)
+            assert 0 < c["calibration_mc_rel_u"][k] < 1, (label, k)
+    # the recorded Monte Carlo uncertainty from the 12 draws' own shifts
+    seen = {}
+    orig = EB._Sums.intrinsics_variance
+
+    def keep(self, p):
+        out = orig(self, p)
+        seen[p.alpha_x] = (self.mc_sums, out)
+        return out
+    monkeypatch.setattr(EB._Sums, "intrinsics_variance", keep)
+    again = EB.design_budget(rig, [("s", P)], intrinsics_draws=12, **kw)["s"]
+    (n, s1, s2), ms = seen[P.alpha_x]
+    assert n == 12
+    np.testing.assert_allclose(ms, s1 / n)
+    u_ms = np.sqrt((s2 - n * ms ** 2) / (n - 1) / n)
+    for j, k in enumerate(fi.PARAMS):
+        assert again["calibration_mc_rel_u"][k] == pytest.approx(u_ms[j] / (2 * again["combined"][k] ** 2), rel=1e-9)

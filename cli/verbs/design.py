@@ -224,6 +224,10 @@ def add_errors_arguments(p) -> None:
                         "intrinsics are drawn from its views as glossrig fit draws them, and the pose figures "
                         "default to the poses' own noise (0.03 deg, 0.02 mm x 0.25 / --scale); without it the pose "
                         "figures carry the intrinsics")
+    p.add_argument("--draws", type=int, default=None, metavar="N",
+                   help="budget with --camera: a fixed number of calibration draws (default: adaptive Monte Carlo, "
+                        "GUM-S1 7.9: 32 draws, doubled up to 256 until each combined figure is known to 10 %% of "
+                        "itself; the output records the draws and their Monte Carlo uncertainty)")
     p.add_argument("--out", default=None, help="JSON file to write (default: print)")
     add_force_option(p, "an existing --out file")
 
@@ -269,8 +273,13 @@ def run_errors(args) -> int:
     opt = {k: v for k, v in (("gain_rel", args.model_gain), ("lamp_std_mm", args.lamp_std),
                              ("pose_rot_deg", args.pose_rot), ("pose_t_mm", args.pose_t),
                              ("led_aperture", args.led_aperture)) if v is not None}
+    if args.draws is not None and args.draws < 2:
+        raise InputError(f"--draws must be an integer >= 2, got {args.draws}")
+    if args.draws is not None and not args.camera:
+        raise InputError("--draws needs --camera (without it no calibration draws are made)")
     if args.camera:
         opt["camera_views"] = _camera_views(args.camera, tuple(rig.camera.size(args.scale)))
+        opt["intrinsics_draws"] = args.draws
     # one walk over the design's pixels gives both figures
     budget, errs = EB.budget_and_bound(rig, materials, rotations=rots, led_ids=leds, scale=args.scale,
                                        noise=args.noise, bound_gain_rel=args.gain_noise, **opt)

@@ -133,6 +133,21 @@ CYLINDER_POSE_NOISE_ROT_DEG = (0.029, 0.017, 0.0040)
 CYLINDER_POSE_NOISE_T_MM = (0.015, 0.0068, 0.115)
 POSE_NOISE_SCALE = 0.1
 COMPONENTS = ("noise", "model", "calibration", "footprint")
+#: The calibration draws' Monte Carlo (GUM-S1 7.9, adaptive): start with :data:`MC_START_DRAWS`
+#: draws and double them, for the materials not yet settled, until the Monte Carlo standard
+#: uncertainty of every identifiable parameter's combined standard uncertainty is at most
+#: :data:`MC_REL_TOL` of it, or :data:`MC_MAX_DRAWS` draws are reached (then the entry says it did
+#: not settle). The refits' response is heavy-tailed for a lobe a holder error of ~0.3 deg shifts by
+#: a third of its width: sample_0_6 at scale 0.1 (LEDs 8-11, the coverage study's round-0
+#: camera), 128 draws, |alpha_y shift| median 0.15 %, 5 of 128 above 1 %; 16 draws (the former
+#: fixed count) gave 0.15-0.55 % over seeds 0-7, 128 draws 0.33 % and 0.31 % (seeds 0, 1); the
+#: twin's 16 calibrations 0.46 % (round 0's holder solved 0.33 deg off: -1.72 %). The 16 draws
+#: also under-state their own spread (13 % relative standard uncertainty from the sample against
+#: 25-45 % over seeds), hence the start at 32. 10 %: the prediction is good to +-20 % at 95 %
+#: against ``design errors``' aim of a factor of 2.
+MC_START_DRAWS = 32
+MC_MAX_DRAWS = 256
+MC_REL_TOL = 0.10
 
 
 def _moved(geom: cov.PixelGeometry, R=None, t=None) -> cov.PixelGeometry:
@@ -214,7 +229,7 @@ class CalibrationDraws:
 
     def __init__(self, rig, px: cov.PixelGeometry, views, n_draws: int, seed: int, lamp_std_mm: float = 0.0,
                  pose_rot_deg=0.0, pose_t_mm=0.0, cylinder_rot_deg=0.0, cylinder_t_mm=0.0,
-                 captures=("lamps", "sample")):
+                 captures=("lamps", "sample"), first: int = 0):
         import cv2
 
         from glossrig.core.calibration.markers import cylinder_marker_corners, holder_marker_corners
@@ -237,7 +252,9 @@ class CalibrationDraws:
                                         radius=rig.cylinder_radius, height=rig.sample_height, poses={0.0: parts},
                                         camera_views=views)
         rng = np.random.default_rng(seed)
-        self.draws = [cu.draw_calibration(self.cal, rng, ("intrinsics",))[:3] for _ in range(n_draws)]
+        # draws first .. n_draws - 1 of the streams (the earlier ones are another pass's: budget_and_bound)
+        self.first = int(first)
+        self.draws = [cu.draw_calibration(self.cal, rng, ("intrinsics",))[:3] for _ in range(n_draws)][self.first:]
         # the marker poses' own errors per axis: (holder rotation (rad), translation (mm), cylinder's)
         self.pose_sd = tuple(np.broadcast_to(np.asarray(x, float), (3,)) * f for x, f in
                              ((pose_rot_deg, math.pi / 180), (pose_t_mm, 1.0), (cylinder_rot_deg, math.pi / 180),
@@ -245,13 +262,13 @@ class CalibrationDraws:
         self.n_draws, self.captures = n_draws, tuple(captures)
         # the lamp capture's own pose errors per draw (their own stream)
         self.lamp_capture_moves = self._pose_moves(np.random.default_rng([seed, 3])) if "lamps" in self.captures \
-            else [None] * n_draws
+            else [None] * len(self.draws)
         # a further lamp error (cu.LAMP_DRAW): per draw a shift common to every LED and each LED's own,
         # from streams of their own (so the camera draws do not depend on them)
         self.lamp_std, self.seed = float(lamp_std_mm), seed
         self.common_fraction = np.asarray(cu.LAMP_COMMON_FRACTION)
         self.lamp_shifts = self.lamp_std * np.sqrt(self.common_fraction) * \
-            np.random.default_rng([seed, 1]).standard_normal((n_draws, 3))
+            np.random.default_rng([seed, 1]).standard_normal((n_draws, 3))[self.first:]
         self.rig, self.px = rig, px
         sheet = parse_material(LAMP_SHEET).ward
         assert sheet is not None                # a Ward material (scenes/materials)
@@ -265,10 +282,10 @@ class CalibrationDraws:
     def _pose_moves(self, rng) -> list[tuple]:
         """Per draw ``((R, t) of the holder, (R, t) of the cylinder)``: each marker's pose error (the
         rotation about its own axes, the translation in the camera frame), normal with the stated
-        standard deviations per axis (:data:`HOLDER_POSE_NOISE_ROT_DEG`)."""
+        standard deviations per axis (:data:`HOLDER_POSE_NOISE_ROT_DEG`); the draws from ``first`` on."""
         from glossrig.core.fitting.calibration_uncertainty import rotation_from_vector
 
-        z = rng.standard_normal((self.n_draws, 4, 3)) * np.asarray(self.pose_sd)
+        z = rng.standard_normal((self.n_draws, 4, 3))[self.first:] * np.asarray(self.pose_sd)
         return [((rotation_from_vector(a), b), (rotation_from_vector(c), d)) for a, b, c, d in z]
 
     @property
@@ -343,7 +360,7 @@ class CalibrationDraws:
         if led not in self._nominal:
             self._nominal[led] = deg(cu.row_angles(self.cal, *args, lamps=lamps))
         own = self.lamp_std * np.sqrt(1 - self.common_fraction) * \
-            np.random.default_rng([self.seed, 2, int(led)]).standard_normal((len(self.draws), 3))
+            np.random.default_rng([self.seed, 2, int(led)]).standard_normal((self.n_draws, 3))[self.first:]
         moves = self._pose_moves(np.random.default_rng([self.seed, 5, int(rotation_index)])) if self.moves_sample \
             else [None] * len(self.draws)
         drawn = [deg(cu.row_angles(self.cal, *args, K=K, dist=d, poses={0.0: self._move(p[0.0], mv)},
@@ -424,16 +441,57 @@ def design_budget(rig, materials, **kw) -> dict[str, dict]:
 # one BLAS thread (core.workers.one_blas_thread): the refits of the calibration draws and the lamps'
 # re-solves are the fit's small least squares
 @in_one_blas_thread
-def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float = 0.25, noise: str = "hdr",
-                     fisher_rows: int = 20000, gain_rel: float = GAIN_REL, lamp_std_mm: float | None = None,
-                     pose_rot_deg: float | None = None, pose_t_mm: float | None = None,
-                     albedo_u: float | None = None, angular_u: float | None = None,
-                     led_aperture: float | None = None, camera_views=None, intrinsics_draws: int = 16,
-                     seed: int = 0, bound_gain_rel: float = 0.0) -> tuple[dict[str, dict], dict[str, fi.ExpectedError]]:
+def budget_and_bound(rig, materials, *, intrinsics_draws: int | None = None, mc_rel_tol: float = MC_REL_TOL,
+                     mc_max_draws: int = MC_MAX_DRAWS, **kw) -> tuple[dict[str, dict], dict[str, fi.ExpectedError]]:
     """:func:`design_budget`'s budget and, from the same walk over the design's pixels, the
     noise-only Cramer-Rao bound of each material: ``{label: ExpectedError}`` equal to
     :func:`glossrig.core.design.placement.design_errors` with ``gain_rel=bound_gain_rel``
-    (the same rows, noise model and :func:`~glossrig.core.design.fisher.gain_marginal_information`)."""
+    (the same rows, noise model and :func:`~glossrig.core.design.fisher.gain_marginal_information`).
+    Keywords as :func:`_budget_pass`.
+
+    With camera views the calibration draws are a Monte Carlo whose size is chosen adaptively
+    (GUM-S1, JCGM 101:2008, 7.9; :data:`MC_REL_TOL`): :data:`MC_START_DRAWS` draws, doubled for the
+    materials whose combined standard uncertainty is not yet known to ``mc_rel_tol`` of itself
+    (the Monte Carlo standard uncertainty of the draws' mean square, ``_Sums.intrinsics_variance``,
+    propagated to the combined figure) up to ``mc_max_draws``; a doubled pass keeps the earlier
+    draws (the same random streams, extended). Each material's entry records ``calibration_draws``,
+    ``calibration_mc_rel_u`` per parameter and ``calibration_mc_settled``. ``intrinsics_draws``
+    fixes the number of draws instead (no adaptation)."""
+    if kw.get("camera_views") is None or intrinsics_draws is not None:
+        return _budget_pass(rig, materials, intrinsics_draws=intrinsics_draws or MC_START_DRAWS, **kw)[:2]
+    n = MC_START_DRAWS
+    out, bound, sums = _budget_pass(rig, materials, intrinsics_draws=n, **kw)
+    while True:
+        for e in out.values():
+            e["calibration_mc_settled"] = _mc_settled(e, mc_rel_tol)
+        todo = [(label, p) for label, p in materials if not out[label]["calibration_mc_settled"]]
+        if not todo or 2 * n > mc_max_draws:
+            return out, bound
+        # the next n draws only, pooled with the earlier ones' sums
+        more, _, more_sums = _budget_pass(rig, todo, intrinsics_draws=2 * n, first_draw=n,
+                                          mc_prior={label: sums[label] for label, _ in todo}, **kw)
+        out.update(more)
+        sums.update(more_sums)
+        n *= 2
+
+
+def _mc_settled(entry: dict, tol: float) -> bool:
+    """Whether every identifiable parameter's combined standard uncertainty is known to ``tol``
+    of itself (``calibration_mc_rel_u``; a parameter without one counts as settled)."""
+    return all(u is None or u <= tol for u in (entry.get("calibration_mc_rel_u") or {}).values())
+
+
+def _budget_pass(rig, materials, rotations=None, led_ids=None, scale: float = 0.25, noise: str = "hdr",
+                 fisher_rows: int = 20000, gain_rel: float = GAIN_REL, lamp_std_mm: float | None = None,
+                 pose_rot_deg: float | None = None, pose_t_mm: float | None = None,
+                 albedo_u: float | None = None, angular_u: float | None = None,
+                 led_aperture: float | None = None, camera_views=None, intrinsics_draws: int = MC_START_DRAWS,
+                 seed: int = 0, bound_gain_rel: float = 0.0, first_draw: int = 0, mc_prior: dict | None = None):
+    """One walk over the design's pixels (:func:`budget_and_bound`) with ``intrinsics_draws``
+    calibration draws, of which the first ``first_draw`` were refitted by an earlier pass whose
+    sums ``mc_prior`` gives per material (``(count, sum of squares, sum of their squares)`` of the
+    refits' shifts, :meth:`_Sums.intrinsics_variance`). Returns the budget, the bound and each
+    material's sums."""
     from glossrig.core.calibration.lamps import LAMP_STD_MM
     from glossrig.core.design.placement import _rows_for
     from glossrig.core.fitting.calibration_uncertainty import (ALBEDO_ANGULAR_U_REL, ALBEDO_U_REL,
@@ -469,12 +527,12 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
     ref_f = ref_albedo / math.pi
     px = cov.pixel_geometry(rig, scale)
     nm = fi.noise_model(noise, rig)
-    intr = CalibrationDraws(rig, px, camera_views, intrinsics_draws, seed, lamp_std, **marker_sd) \
+    intr = CalibrationDraws(rig, px, camera_views, intrinsics_draws, seed, lamp_std, **marker_sd, first=first_draw) \
         if marker_sd is not None else None
     rot_rad = math.radians(pose_rot_deg)
     moves = [(f"pose_rot{k}", rotation_from_vector(rot_rad * e), None) for k, e in enumerate(np.eye(3))] + \
             [(f"pose_t{k}", None, pose_t_mm * e) for k, e in enumerate(np.eye(3))] if intr is None else []
-    acc = {label: _Sums() for label, _ in materials}
+    acc = {label: _Sums((mc_prior or {}).get(label)) for label, _ in materials}
     for i in led_ids:
         lamp = np.asarray(rig.led(i).position, float)
         a_all = cov.direction_angles(px, lamp, half=True)
@@ -555,7 +613,7 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
                              f"draw ({LAMP_SHEET}, its capture's holder moved by the pose noise) plus {lamp_std:g} mm "
                              "per axis independent of the geometry (cu.LAMP_DRAW), refitted" if camera_views is not None else
                              "not drawn (no camera calibration views given): carried by the pose figures")}
-    out, bound = {}, {}
+    out, bound, sums = {}, {}, {}
     for label, p in materials:
         s = acc[label]
         mask = fi.identifiable(p)
@@ -570,24 +628,35 @@ def budget_and_bound(rig, materials, rotations=None, led_ids=None, scale: float 
             var["calibration"] += (angular_u * (Ci @ vec)) ** 2
         for comp, sd, vec in s.b.values():
             var[comp] += (sd * (Ci @ vec)) ** 2
-        refits = None
+        refits, mc_u = None, None
         if s.intr_rows:
             var["calibration"] += s.intrinsics_variance(p)
             refits = "footprint" if s.footprint_refits else "point"
         var["calibration"] += (albedo_u * np.array([p.rho_d, p.rho_s, 0.0, 0.0, 0.0])) ** 2
-        comb = np.sqrt(sum(var.values()))
+        total = sum(var.values())
+        comb = np.sqrt(total)
+        if s.intr_rows:
+            # the Monte Carlo's standard uncertainty of the combined figure: u(mean square) / (2 u_c^2)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                mc_u = _by_param(s.intrinsics_mc_u / (2.0 * total), mask & (total > 0))
         out[label] = {"params": p.as_dict(), "n_samples": s.n_rows,
                       "components": {c: _by_param(np.sqrt(v), mask) for c, v in var.items()},
                       "combined": _by_param(comb, mask), "relative": _by_param(comb / fi.error_scale(p), mask),
-                      "calibration_refits": refits, "stated": stated}
-    return out, bound
+                      "calibration_refits": refits,
+                      "calibration_draws": s.mc_sums[0] if s.mc_sums is not None else None,
+                      "calibration_mc_rel_u": mc_u, "stated": stated}
+        sums[label] = s.mc_sums
+    return out, bound, sums
 
 
 class _Sums:
     """One material's sums over the design's rows (:func:`budget_and_bound`)."""
 
-    def __init__(self) -> None:
+    def __init__(self, mc_prior: tuple | None = None) -> None:
         self.A, self.B, self.info = np.zeros((5, 5)), np.zeros((5, 5)), np.zeros((5, 5))
+        #: the calibration draws refitted by earlier passes: (count, sum of squared shifts, sum of their squares)
+        self.mc_prior = mc_prior
+        self.mc_sums: tuple | None = None
         self.b: dict[str, list] = {}           # source -> [component, standard deviation, sum W^2 J' df]
         self.n_rows = 0
         # the reference's angular variation (module docstring): sum W^2 J' f g and W^2 J' f with
@@ -596,6 +665,8 @@ class _Sums:
         # the intrinsics draws' rows (CalibrationDraws): [(nominal angles, values, weights, drawn angles per draw)]
         self.intr_rows: list[tuple] = []
         self.footprint_refits = False           # whether intrinsics_variance refitted the footprint model
+        #: the Monte Carlo standard uncertainty of intrinsics_variance's mean square (per parameter)
+        self.intrinsics_mc_u = np.zeros(5)
 
     def add_intrinsics_rows(self, a_intr, rows, rotation: float, p: WardParams, table_weights, slope_jac) -> None:
         """Keep one (LED, rotation)'s rows for :meth:`intrinsics_variance`: the nominal and
@@ -703,7 +774,14 @@ class _Sums:
             x = _refit({k: v[ok0][ok] for k, v in ang.items()}, data[ok], sw[ok0][ok], base, "mirror", None,
                        fp=fp0.take(np.flatnonzero(ok)) if use_fp else None)
             shifts.append(_reported(x, x0) - _reported(base, x0))
-        return np.mean(np.square(shifts), axis=0)
+        sq = np.square(shifts)
+        count, s1, s2 = self.mc_prior if self.mc_prior is not None else (0, np.zeros(5), np.zeros(5))
+        count, s1, s2 = count + len(sq), s1 + sq.sum(axis=0), s2 + np.square(sq).sum(axis=0)
+        self.mc_sums = (count, s1, s2)
+        mean = s1 / count
+        # the mean square's own Monte Carlo standard uncertainty (budget_and_bound's adaptive draws)
+        self.intrinsics_mc_u = np.sqrt(np.maximum(s2 - count * mean ** 2, 0.0) / max(count - 1, 1) / count)
+        return mean
 
 
 def pixel_slope_jacobian(px: cov.PixelGeometry, a: dict, rotation: float) -> np.ndarray:
@@ -742,6 +820,11 @@ def budget_text(budget: dict) -> str:
             sc = 1.0 if k == "lobe_rotation" else abs(e["params"][k]) or 1.0
             cells = [_cell(e["components"][c][k], k, sc) for c in COMPONENTS] + [_cell(e["combined"][k], k, sc)]
             lines.append(f"{label[:24]:24s} {k:13s} " + " ".join(cells))
+        if e.get("calibration_draws"):
+            worst = max((u for u in (e.get("calibration_mc_rel_u") or {}).values() if u is not None), default=0.0)
+            lines.append(f"{label[:24]:24s} calibration: {e['calibration_draws']} Monte Carlo draws, their standard "
+                         f"uncertainty at most {100 * worst:.0f} % of a combined figure"
+                         + ("" if e.get("calibration_mc_settled", True) else " (NOT settled: more draws needed)"))
     return "\n".join(lines)
 
 
