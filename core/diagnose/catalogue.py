@@ -20,10 +20,27 @@ squared normalised residual, :func:`chi2`):
   under every LED in the training exposures.
 
 A cause is *significant* when its held-out error is lower than the base
-model's in every fold and the pooled relative gain exceeds its space's
-``threshold + penalty * (extra parameters)`` (:data:`THRESHOLDS`). The
-thresholds were calibrated on null captures (validation/diagnose/blind_study.md):
-null gains stay below them. Extra parameters already pay on held-out data by
+model's in (nearly) every fold - :func:`consistent_folds`: every fold, but one of
+eight to ten folds may fail (a one-sided sign test at FOLD_SIGN_ALPHA) - and the pooled
+relative gain exceeds its space's ``threshold + penalty * (extra parameters)``
+(:data:`THRESHOLDS`). The thresholds were calibrated on null captures
+(validation/diagnose/blind_study.md): null gains stay below them. Why one fold may fail:
+leaving one LED out, the LEDs at the ends of the rig's theta_d range are predicted from
+LEDs that all lie on one side of them, so every extension is *extrapolated* there, and a
+material departure that holds on every other LED can lose on that one (measured on the
+rgl study, issue 14: the flexible material model gained on 7 of 8 LEDs of
+ilm_l3_37_matte, -9 % on the eighth, and was not named; its departure from Ward is
++57 % against the true BRDF). With fewer than eight folds (the two-LED null captures,
+the frame and pixel spaces' two exposure halves) the sign test cannot allow a failed
+fold at 5 % and the rule is "every fold", as before.
+
+A material model (:data:`KINDS`) must in addition lower the *robust* held-out score
+(:class:`RobustScore`: the median over all held-out rows of the relative residual
+``|pred / y - 1|``, the data standing for the true BRDF in the issue's criterion, the
+median relative error against the true BRDF at the rig's angles): a model that lowers
+the squared normalised score only by fitting a few rows (grazing rows, the extrapolated
+LED) while the typical row gets worse does not predict the material better. Material
+models are ranked by that robust gain (:func:`glossrig.core.diagnose.report.ranking`). Extra parameters already pay on held-out data by
 over-fitting; the penalty adds a stated cost on top (a BIC-like preference for
 the simpler model). The verdict (:func:`glossrig.core.diagnose.report.verdict`)
 looks at the sensor-level spaces first.
@@ -63,6 +80,64 @@ MAX_BRDF_ROWS = 60_000
 KINDS = {"ggx_lobe": "material", "fresnel": "material", "flexible_material": "material",
          "beckmann_lobe": "material", "grazing_lobe": "material"}
 MAX_PIXELS = 15_000
+#: one-sided level of the sign test on the fold gains (:func:`consistent_folds`): the issue's bound on the
+#: false-alarm rate; a statement of "a majority of folds agree" at that level, not a number fitted to data
+FOLD_SIGN_ALPHA = 0.05
+
+
+def allowed_failed_folds(n: int, alpha: float = FOLD_SIGN_ALPHA) -> int:
+    """How many of ``n`` folds may show no held-out gain: the largest k with P(at least n - k of n
+    folds positive | each fold positive with probability 1/2) <= ``alpha`` (one-sided sign test),
+    0 when even n of n does not reach ``alpha`` or only n of n does (n <= 7 at 5 %: every fold must
+    gain; n = 8-10: one fold may fail; n = 11-12: two)."""
+    from scipy.stats import binom
+
+    k = 0
+    while k + 1 < n and binom.sf(n - (k + 1) - 1, n, 0.5) <= alpha:
+        k += 1
+    return k
+
+
+def consistent_folds(fold_gains) -> bool:
+    """The fold rule of significance (module docstring): every fold gains held-out, except at most
+    :func:`allowed_failed_folds` of them. Used by the causes and by the open world's structure
+    tests (:mod:`.unexplained`), which ask whether a cause outside the catalogue would pass the
+    catalogue's own test."""
+    g = list(fold_gains)
+    return len(g) > 0 and sum(not (x > 0) for x in g) <= allowed_failed_folds(len(g))
+
+
+def relative_residual(y: np.ndarray, pred: np.ndarray) -> np.ndarray:
+    """``|pred / y - 1|`` per row (y floored at 1e-12 in magnitude): the measured value standing for
+    the true BRDF of the issue's criterion, median |f_model / f_true - 1| (:class:`RobustScore`)."""
+    y = np.asarray(y, float)
+    return np.abs(np.asarray(pred, float) - y) / np.maximum(np.abs(y), 1e-12)
+
+
+class RobustScore:
+    """The robust held-out score of a BRDF-space extension: the median, over every held-out row
+    of every fold, of :func:`relative_residual` of the extended model and of its base (each
+    fitted on that fold's training rows); ``gain`` is the relative reduction of the base's
+    median. A median is not moved by the few rows (grazing, the extrapolated LED) that dominate
+    the mean squared normalised score, and is the issue's own measure of a material model against
+    the true BRDF (validation/diagnose/rgl_study.py, median |relative error| at the rig's angles)."""
+
+    def __init__(self):
+        self.base: list[np.ndarray] = []
+        self.ext: list[np.ndarray] = []
+
+    def add(self, y, p0, p1, test) -> None:
+        """One fold: the base's and the extension's predictions ``p0``, ``p1`` at the ``test`` rows."""
+        self.base.append(relative_residual(y[test], p0[test]))
+        self.ext.append(relative_residual(y[test], p1[test]))
+
+    def result(self) -> dict:
+        b, e = np.concatenate(self.base), np.concatenate(self.ext)
+        mb, me = float(np.median(b)), float(np.median(e))
+        folds = [(float(np.median(x0)) - float(np.median(x1))) / max(float(np.median(x0)), 1e-30)
+                 for x0, x1 in zip(self.base, self.ext)]
+        return {"base": mb, "error": me, "gain": (mb - me) / mb if mb > 0 else 0.0, "fold_gains": folds,
+                "measure": "median over held-out rows of |pred / y - 1|"}
 
 
 @dataclass
@@ -90,6 +165,9 @@ class CauseResult:
     #: the cause carries a frame-space signature no material can produce (stray light lighting the
     #: pixels that see nothing, :mod:`.stray_light`): it is eligible whatever the material-first rule says
     frame_signature: bool = False
+    #: the robust held-out score (:class:`RobustScore`; BRDF-space causes that compute it): a material model
+    #: must lower it to be significant, and material models are ranked by its gain (report.ranking)
+    robust: dict | None = None
     #: the extended model fitted on all rows, predicted for every row (BRDF space; not written out):
     #: what remains after it is tested for structure (unexplained.py)
     prediction: np.ndarray | None = field(default=None, repr=False)
@@ -115,9 +193,19 @@ class CauseResult:
         return t + p * self.n_extra_params
 
     @property
+    def robust_gain(self) -> float | None:
+        """The gain of the robust held-out score (:class:`RobustScore`), None where not computed."""
+        return None if self.robust is None else float(self.robust["gain"])
+
+    @property
     def significant(self) -> bool:
+        """Identifiable, not refuted, pooled held-out gain above the threshold, the fold rule of
+        :func:`consistent_folds`, and - for a material model with a robust score - a lower median
+        held-out relative residual than the base model's (module docstring)."""
+        rg = self.robust_gain
+        robust_ok = self.kind != "material" or rg is None or rg > 0
         return bool(self.identifiable and self.refuted is None and self.gain > self.threshold
-                    and all(g > 0 for g in self.fold_gains))
+                    and consistent_folds(self.fold_gains) and robust_ok)
 
     def to_json(self) -> dict:
         return {"name": self.name, "kind": self.kind, "space": self.space, "params": self.params, "stderr": self.stderr,
@@ -126,7 +214,7 @@ class CauseResult:
                 "n_extra_params": self.n_extra_params, "significant": self.significant,
                 "identifiable": self.identifiable, "note": self.note, "profile": self.profile,
                 "blocked_by": self.blocked_by, "vs_material": self.vs_material, "eligible": self.eligible,
-                "refuted": self.refuted, "frame_signature": self.frame_signature,
+                "refuted": self.refuted, "frame_signature": self.frame_signature, "robust": self.robust,
                 "physics": self.doc}
 
 
@@ -256,11 +344,12 @@ def _base_brdf(m: BrdfModel):
 
 def _brdf_scalar(m: BrdfModel, make: Callable[[float], tuple], bounds: tuple[float, float], grid_n=25):
     """Fit a scalar parameter (with rho_d, rho_s linear) per fold; pooled held-out error,
-    fold gains and the held-out profile along the parameter."""
+    fold gains, the held-out profile along the parameter and the robust score (:class:`RobustScore`)."""
     c = m.cols
     grid = np.linspace(*bounds, grid_n)
     folds = m.folds()
     base_res, ext_res, gains, estimates = [], [], [], []
+    robust = RobustScore()
     prof = np.zeros(grid_n)
     for train, test in folds:
         basis0, f0 = _base_brdf(m)(None)
@@ -287,12 +376,14 @@ def _brdf_scalar(m: BrdfModel, make: Callable[[float], tuple], bounds: tuple[flo
         basis, fac = make(p_best)
         _, pr, _ = m.solve_linear(basis, train, fac)
         e1 = chi2((c["y"] - pr)[test], c["sigma"][test])
+        robust.add(c["y"], p0, pr, test)
         base_res.append(e0 * test.sum())
         ext_res.append(e1 * test.sum())
         gains.append((e0 - e1) / e0)
         estimates.append(p_best)
     n = sum(t.sum() for _, t in folds)
-    return sum(base_res) / n, sum(ext_res) / n, gains, estimates, {"grid": grid.tolist(), "error": (prof / n).tolist()}
+    return (sum(base_res) / n, sum(ext_res) / n, gains, estimates, {"grid": grid.tolist(), "error": (prof / n).tolist()},
+            robust.result())
 
 
 def _scalar_all(m: BrdfModel, make, bounds: tuple[float, float]):
@@ -443,11 +534,13 @@ def _linear_cause(m: BrdfModel, name, doc, basis, pname, unit) -> CauseResult:
     base_res = ext_res = 0.0
     gains = []
     n = 0
+    robust = RobustScore()
     for train, test in m.folds():
         _, p0, _ = m.solve_linear(basis[:2], train)
         _, p1, _ = m.solve_linear(basis, train)
         e0 = chi2((c["y"] - p0)[test], c["sigma"][test])
         e1 = chi2((c["y"] - p1)[test], c["sigma"][test])
+        robust.add(c["y"], p0, p1, test)
         base_res += e0 * test.sum()
         ext_res += e1 * test.sum()
         n += test.sum()
@@ -455,14 +548,14 @@ def _linear_cause(m: BrdfModel, name, doc, basis, pname, unit) -> CauseResult:
     coef, pred, cov = m.solve_linear(basis, np.ones(len(c["y"]), bool))
     val, se = float(coef[-1]), float(math.sqrt(max(cov[-1, -1], 0)))
     return CauseResult(name, "brdf", doc, {pname: val, "unit": unit}, {pname: se}, ext_res / n, base_res / n,
-                       gains, 1, magnitude=val, prediction=pred)
+                       gains, 1, magnitude=val, prediction=pred, robust=robust.result())
 
 
 def _scalar_cause(m: BrdfModel, name, doc, make, bounds, pname, unit, grid_n=25) -> CauseResult:
-    e0, e1, gains, est, prof = _brdf_scalar(m, make, bounds, grid_n)
+    e0, e1, gains, est, prof, robust = _brdf_scalar(m, make, bounds, grid_n)
     p, se, pred = _scalar_all(m, make, bounds)
     r = CauseResult(name, "brdf", doc, {pname: p, "unit": unit, "fold_estimates": est}, {pname: se}, e1, e0,
-                    gains, 1, profile=prof, magnitude=p, prediction=pred)
+                    gains, 1, profile=prof, magnitude=p, prediction=pred, robust=robust)
     if _flat(prof):
         r.identifiable = False
         r.note = (f"held-out error varies by less than {GAIN_THRESHOLD:.0%} over {pname} in "

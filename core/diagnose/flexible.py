@@ -144,17 +144,19 @@ def describe(delta, cols: dict) -> dict:
 
 def flexible_cause(m):
     """The flexible material model as a catalogue cause (kind "material")."""
-    from glossrig.core.diagnose.catalogue import CauseResult, chi2
+    from glossrig.core.diagnose.catalogue import CauseResult, RobustScore, chi2
 
     c = m.cols
     one = np.full_like(c["L"], 1 / np.pi)
     base = [one, c["L"]]
     e0s = e1s = 0.0
     gains, n = [], 0
+    robust = RobustScore()
     for train, test in m.folds():
         _, p0, _ = m.solve_linear(base, train)
         _, p1 = fit_flexible(m, train)
         e0, e1 = chi2((c["y"] - p0)[test], c["sigma"][test]), chi2((c["y"] - p1)[test], c["sigma"][test])
+        robust.add(c["y"], p0, p1, test)
         e0s, e1s, n = e0s + e0 * test.sum(), e1s + e1 * test.sum(), n + test.sum()
         gains.append((e0 - e1) / e0)
     allr = np.ones(len(c["y"]), bool)
@@ -172,7 +174,7 @@ def flexible_cause(m):
               "profile": desc["profile"], "rho_d": float(coef[0]), "rho_s": float(coef[1]),
               "unit": "relative departure from the Ward fit"}
     r = CauseResult("flexible_material", "brdf", doc, params, {}, e1s / n, e0s / n, gains, len(coef) - 2,
-                    magnitude=desc["effect"], prediction=pf)
+                    magnitude=desc["effect"], prediction=pf, robust=robust.result())
     r.note = f"material departure {desc['description']} (by {desc['effect']:.1%})"
     m.flexible_prediction = pf
     return r

@@ -294,14 +294,15 @@ def _refit_cause(m, a, kind, start):
     """Held-out scores of a lobe of ``kind`` refitted per fold (shape and rho_d, rho_s; on at most
     LOBE_FIT_ROWS of the fold's training rows), against the base model (Ward lobe of the fit, rho_d
     and rho_s re-solved per fold on all its training rows). Returns (error, base error, fold gains,
-    fit on all rows)."""
-    from glossrig.core.diagnose.catalogue import chi2
+    fit on all rows, robust score of :class:`glossrig.core.diagnose.catalogue.RobustScore`)."""
+    from glossrig.core.diagnose.catalogue import RobustScore, chi2
 
     c = m.cols
     one = np.full_like(c["L"], 1 / np.pi)
     y, sig = c["y"], c["sigma"]
     e0s = e1s = 0.0
     gains = []
+    robust = RobustScore()
     n_tot = 0
     rng = np.random.default_rng(0)
     for train, test in m.folds():
@@ -313,9 +314,10 @@ def _refit_cause(m, a, kind, start):
         p1 = f.predict(a)
         _, p0, _ = m.solve_linear([one, c["L"]], train)
         e0, e1 = chi2((y - p0)[test], sig[test]), chi2((y - p1)[test], sig[test])
+        robust.add(y, p0, p1, test)
         e0s, e1s, n_tot = e0s + e0 * test.sum(), e1s + e1 * test.sum(), n_tot + test.sum()
         gains.append((e0 - e1) / e0)
-    return e1s / n_tot, e0s / n_tot, gains, fit_lobe(a, y, 1 / sig, kind, start)
+    return e1s / n_tot, e0s / n_tot, gains, fit_lobe(a, y, 1 / sig, kind, start), robust.result()
 
 
 def material_causes(m) -> list:
@@ -346,9 +348,10 @@ def material_causes(m) -> list:
            "part at grazing angles and on rough lobes, where masking removes light.")
     lobe_docs.append(("beckmann", "beckmann_lobe", doc, "Beckmann roughness, radians"))
     for kind, name, doc, unit in lobe_docs:
-        e1, e0, gains, f = _refit_cause(m, a, kind, start)
+        e1, e0, gains, f, robust = _refit_cause(m, a, kind, start)
         out.append(CauseResult(name, "brdf", doc, dict({k: getattr(f, k) for k in names}, unit=unit),
-                               f.stderr, e1, e0, gains, 0, magnitude=f.alpha_x, prediction=f.predict(a)))
+                               f.stderr, e1, e0, gains, 0, magnitude=f.alpha_x, prediction=f.predict(a),
+                               robust=robust))
 
     # ---- a diffuse term with a grazing factor (Burley 2012): one parameter, F_D90
     from glossrig.core.diagnose.catalogue import _scalar_cause

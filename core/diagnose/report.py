@@ -21,9 +21,26 @@ def ranking(causes: list[CauseResult]) -> list[CauseResult]:
     (:func:`verdict` names the first; a capture hiding two effects should have both among the
     first two). The gain is held-out for every cause but one named by its frame signature,
     whose veil is measured in the frames and tested on all BRDF rows per LED
-    (:func:`.stray_light.apply_frame_evidence`; its held-out fold gains are recorded beside it)."""
+    (:func:`.stray_light.apply_frame_evidence`; its held-out fold gains are recorded beside it).
+
+    Within the other BRDF-space causes an eligible instrument cause comes before the material
+    models - it is eligible only by beating every material model's held-out error by its
+    threshold (:func:`.flexible.material_first`), so its gain is the larger, as the order by gain
+    had it - and the material models are ordered by their *robust* held-out gain
+    (:class:`.catalogue.RobustScore`, the median held-out relative residual; the squared
+    normalised gain where none was computed). The issue's criterion is the extension that gains
+    most against the true BRDF in median relative error at the rig's angles; the mean squared
+    normalised score is dominated by the grazing rows and the extrapolated end LEDs of the
+    theta_d range and named the flexible model (0.819 against GGX's 0.784) on the rgl study's
+    cc_ibiza_sunset, where GGX gains +67.8 % against the truth and the flexible model +32.9 %."""
     sig = [c for c in causes if c.eligible]
-    return sorted(sig, key=lambda c: (0 if c.space in SENSOR_SPACES else 1 if c.frame_signature else 2, -c.gain))
+
+    def key(c):
+        group = 0 if c.space in SENSOR_SPACES else 1 if c.frame_signature else 2
+        if group < 2 or c.kind != "material":
+            return (group, 0, -c.gain)
+        return (group, 1, -(c.robust_gain if c.robust_gain is not None else c.gain))
+    return sorted(sig, key=key)
 
 
 def verdict(causes: list[CauseResult]) -> str:
@@ -40,8 +57,9 @@ def verdict(causes: list[CauseResult]) -> str:
 
     Only *eligible* causes count (issue 14): a BRDF-space instrument cause that does not beat
     the flexible material model on held-out folds is blocked (:mod:`.flexible`). Among the
-    material models the largest held-out gain wins, the flexible one included: the issue's
-    criterion is the extension that predicts best. (A named model used to be preferred when it
+    material models the largest robust held-out gain wins (:func:`ranking`: the median held-out
+    relative residual), the flexible one included: the issue's criterion is the extension that
+    predicts best, in median relative error. (A named model used to be preferred when it
     reached half the flexible model's gain; on the rgl study that named GGX where the flexible
     model was closer to the truth - satin_rosaline, ilm_l3_37_metallic - and was dropped.)"""
     r = ranking(causes)
@@ -186,9 +204,13 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
                             "profile": e.get("profile")} for e in unexplained],
            "penalty": {"per_space": {k: {"gain_threshold": t, "per_extra_parameter": p}
                                      for k, (t, p) in THRESHOLDS.items()},
-                       "rule": "significant iff held-out error drops in every fold and the pooled relative gain "
-                               "exceeds gain_threshold + per_extra_parameter * extra parameters of its space; "
-                               "the verdict is the largest significant gain, frame/pixel-space causes first; "
+                       "rule": "significant iff held-out error drops in every fold (but one of 8-10 folds, "
+                               "two of 11-12: a one-sided sign test at 5 %, glossrig.core.diagnose.catalogue."
+                               "consistent_folds) and the pooled relative gain "
+                               "exceeds gain_threshold + per_extra_parameter * extra parameters of its space, "
+                               "a material model also lowering the median held-out relative residual (robust); "
+                               "the verdict is the largest significant gain, frame/pixel-space causes first, "
+                               "material models by their robust gain; "
                                "a BRDF-space instrument cause must also beat the flexible material model "
                                "(eligible); 'unexplained' when residual structure remains that no eligible cause "
                                "explains: in BRDF space a variable carries structure when a smooth function of it "
@@ -206,7 +228,7 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
          *_reference_calibration_lines(meta.get("reference_calibration")),
          f"## Verdict: **{v}**", ""]
     if v == "none":
-        L.append("No cause lowers the held-out error by more than the stated threshold in every fold: "
+        L.append("No cause lowers the held-out error by more than the stated threshold in (nearly) every fold: "
                  "no significant discrepancy between the measurement and the model.")
     elif v == "unexplained":
         L.append("Structured residual remains that no catalogue cause explains: "
@@ -227,7 +249,8 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
               "term fitted on the training folds and the HDR noise describe the held-out data."]
     L += ["", "Base held-out errors (mean squared normalised residual): "
           + ", ".join(f"{k} {val:.4g}" for k, val in base_errors.items()), "",
-          "Penalty: a cause is significant when its held-out error is lower in every fold and the pooled gain "
+          "Penalty: a cause is significant when its held-out error is lower in every fold (one of 8-10 folds "
+          "may fail: a sign test at 5 %) and the pooled gain "
           "exceeds its space's threshold plus a penalty per extra parameter ("
           + "; ".join(f"{k}: {t:.2%} + {p:.2%}" for k, (t, p) in THRESHOLDS.items())
           + "). Sensor-level (frames, pixels) causes are named first: light and geometry causes cannot bend "

@@ -243,7 +243,7 @@ def apply_frame_evidence(m, causes: list[CauseResult], ev: dict | None) -> None:
 
     * the frames' s is above SIGNATURE_Z standard errors: the cause is re-tested with the veil of
       that s held fixed (:func:`fixed_veil_test`) and, where the BRDF data agree with it (by the
-      usual rule on that test: a lower error on every LED's rows, the pooled gain above the
+      usual rule on that test, with no failed LED allowed: a lower error on every LED's rows, the pooled gain above the
       threshold), it takes that test's result and s (the free BRDF-space s is kept as ``s_brdf``)
       and carries ``frame_signature`` - eligible whatever material-first says. (Twin captures without
       stray light read s ~ 2e-6 there, 1000 times below the catalogue's smallest stray light: such a
@@ -262,7 +262,9 @@ def apply_frame_evidence(m, causes: list[CauseResult], ev: dict | None) -> None:
         e0, e1, gains, pred, held = fixed_veil_test(m, ev["s"])
         fixed = CauseResult(c.name, c.space, c.doc, {}, {}, e1, e0, gains, c.n_extra_params)
         c.params["fixed_veil_heldout_fold_gains"] = held
-        if fixed.significant:
+        # every LED's rows, not the sign test of catalogue.consistent_folds: that tolerates a held-out LED the
+        # fit must extrapolate to, while this test fits nothing of the veil and scores every LED in-sample
+        if fixed.significant and all(g > 0 for g in gains):
             c.params.update({"s_brdf": s_b, "s": ev["s"], "fixed_by": "frames"})
             c.stderr["s"] = ev["se"]
             c.base_error, c.error, c.fold_gains, c.prediction, c.magnitude = e0, e1, gains, pred, ev["s"]

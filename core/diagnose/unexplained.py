@@ -22,7 +22,9 @@ halves of the pixel rows (:meth:`~glossrig.core.diagnose.catalogue.BrdfModel.hal
 per-LED structure must hold on both sides of the cylinder). Significant iff the extended
 model's held-out error, divided by the calibrated sigma of :mod:`.error_model` (noise plus the
 base model's misfit term, Huber-weighted: the sigma the causes are divided by), is lower than
-its base's in every fold and the pooled relative gain exceeds the BRDF space's
+its base's in every fold - or every fold but the few the catalogue's sign test allows
+(:func:`glossrig.core.diagnose.catalogue.consistent_folds`: one of eight to ten LEDs) - and the
+pooled relative gain exceeds the BRDF space's
 ``threshold + penalty x (bins of g)`` (:data:`glossrig.core.diagnose.catalogue.THRESHOLDS`).
 The test asks whether a cause outside the catalogue would pass the catalogue's own test.
 Structure that does not transfer across LEDs - a glossy material's misfit that lands at
@@ -192,7 +194,7 @@ def heldout_structure(m, pred, x, folds, cells=None) -> dict:
     test rows? ``cells``: per-row angle cell index; base and extension then both carry a
     correction per cell (backfitted with g). Returns the pooled base and extended held-out
     errors, the gain, the fold gains, the bins of g, the threshold and ``significant``."""
-    from glossrig.core.diagnose.catalogue import THRESHOLDS
+    from glossrig.core.diagnose.catalogue import THRESHOLDS, consistent_folds
 
     c = m.cols
     y, s = c["y"], c["sigma"]
@@ -230,7 +232,7 @@ def heldout_structure(m, pred, x, folds, cells=None) -> dict:
                 "note": "not testable: the variable takes one value (or none) on the training rows"}
     gain = (e0s - e1s) / e0s if e0s > 0 else 0.0
     return {"heldout_base_error": e0s / n, "heldout_error": e1s / n, "gain": gain, "fold_gains": gains,
-            "n_params": nb, "threshold": thr, "significant": bool(gain > thr and all(gk > 0 for gk in gains))}
+            "n_params": nb, "threshold": thr, "significant": bool(gain > thr and consistent_folds(gains))}
 
 
 def unexplained(m, frame_structure: dict | None = None, after=None) -> list[dict]:
