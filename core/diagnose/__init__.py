@@ -22,7 +22,7 @@ from glossrig.core.errors import InputError
 from glossrig.core.progress import Elapsed
 from glossrig.core.fitting.export import FitFile, read_fit_file
 
-from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes
+from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes, model_of
 from glossrig.core.workers import one_blas_thread
 from glossrig.core.diagnose.data import load_brdf
 from glossrig.core.diagnose.fit_check import check_fit
@@ -142,7 +142,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     # named through its frame-space signature where they carry it (stray_light.py)
     stray = frame_evidence(veil, t, data.lamps)
     with one_blas_thread():
-        apply_frame_evidence(m, causes, stray)
+        apply_frame_evidence(model_of(m, next((c for c in causes if c.name == "stray_light"), None)), causes, stray)
     if stray is not None:
         log(f"stray light in the frames' dark pixels: s = {stray['s']:.3g} +- {stray['se']:.2g}")
     causes = causes + fcauses
@@ -161,8 +161,11 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
                        "frames": "even / odd exposure index", "pixels": "even / odd exposure index (pixel set found under every LED)"},
             "time_s": clock.seconds()[0]}
     # a named BRDF-space cause must leave no structure where no material acts (unexplained.py)
+    named = retested_cause(causes, verdict(causes))
     with one_blas_thread():
-        open_world = unexplained(m, fstructure, after=retested_cause(causes, verdict(causes)))
+        # an instrument cause was fitted on the conditioned model (catalogue.instrument_bases): its residual is
+        # tested with that model's noise
+        open_world = unexplained(m, fstructure, after=named, after_model=model_of(m, named))
     log(f"residual structure tested against {len(open_world)} variables; "
         f"{sum(e['significant'] for e in open_world)} carry structure no cause explains")
     rep = write_report(out, causes, base, structure, meta, plots=plots, unexplained=open_world,

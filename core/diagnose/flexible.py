@@ -34,13 +34,13 @@ departs smoothly from Ward (a grazing rise, a non-Lambertian diffuse term, wider
 is within its reach; what it cannot produce is a dependence on where the row sits in
 the image or on the cylinder, on which LED lit it beyond its angles, or on the exposure.
 
-Rule (:func:`material_first`): an instrument cause of BRDF space (stray light,
-vignetting, LED emission and position, sample radius and rotation) may be named only if
-its pooled held-out error is lower than the flexible model's - or any material model's,
-where one predicts better - by more than its own threshold: it must win through a
-signature no material produces. Otherwise it is ``blocked_by`` that material model. A significant flexible model is reported as the
-material cause ``flexible_material`` naming the variable its departure follows
-(:func:`describe`), e.g. "rises toward grazing theta_in".
+Rule (:func:`glossrig.core.diagnose.catalogue.instrument_bases`): every BRDF-space instrument
+cause (stray light, vignetting, LED emission and position, sample radius and rotation) is fitted
+*on top of* the best material model - its lobe with these flexible columns, re-solved on each
+fold - and scored against it: it may be named only where it lowers that model's held-out error
+by more than its own threshold, i.e. through a signature no material produces. A significant
+flexible model is reported as the material cause ``flexible_material`` naming the variable its
+departure follows (:func:`describe`), e.g. "rises toward grazing theta_in".
 """
 from __future__ import annotations
 
@@ -52,7 +52,6 @@ N_KNOTS_G = 5           # hat functions of the reciprocal grazing term, along th
 #: the training LEDs' range (two-LED captures: entirely), the term extrapolates and lost 7-13 %
 #: held-out on an ideal twin capture (sample_2_6, LEDs 6 and 9), against -0.1 % without it
 THETA_D_TERM = False
-RIDGE = 1e-4            # ridge on the flexible columns, relative to their mean normal-equation diagonal
 DESCRIBE_VARS = ("theta_in", "theta_out", "theta_h", "theta_d")
 
 
@@ -96,21 +95,17 @@ def flexible_basis(theta_h, theta_d, train=None, theta_in=None, theta_out=None) 
     return np.concatenate(cols, axis=1) / np.pi
 
 
-def fit_flexible(m, train, ridge: float = RIDGE):
+def fit_flexible(m, train, ridge: float | None = None):
     """Weighted least squares of y on the Ward columns [1/pi, L] (free) and the flexible
-    columns (ridge ``ridge`` times their mean diagonal: it only settles the directions the
-    training rows leave undetermined - the flexible columns sum to the constant of rho_d,
-    which thus stays with rho_d). Returns (coefficients, prediction for all rows)."""
+    columns (ridge-settled, :func:`glossrig.core.diagnose.catalogue.weighted_solve`: the ridge only
+    settles the directions the training rows leave undetermined - the flexible columns sum to the
+    constant of rho_d, which thus stays with rho_d). Returns (coefficients, prediction for all rows)."""
+    from glossrig.core.diagnose.catalogue import FLEX_RIDGE, weighted_solve
+
     c = m.cols
     B = flexible_basis(c["theta_h"], c["theta_d"], train, c.get("theta_in"), c.get("theta_out"))
     X = np.column_stack([np.full_like(c["L"], 1 / np.pi), c["L"], B])
-    sig = c["sigma"]
-    A = X[train] / sig[train, None]
-    b = c["y"][train] / sig[train]
-    AtA = A.T @ A
-    d = np.zeros(X.shape[1])
-    d[2:] = ridge * max(float(np.mean(np.diag(AtA)[2:])), 1e-30)
-    coef = np.linalg.solve(AtA + np.diag(d) + 1e-12 * np.eye(len(d)) * np.trace(AtA) / len(d), A.T @ b)
+    coef, _ = weighted_solve(X[train], c["y"][train], c["sigma"][train], 2, FLEX_RIDGE if ridge is None else ridge)
     return coef, X @ coef
 
 
@@ -178,27 +173,3 @@ def flexible_cause(m):
     r.note = f"material departure {desc['description']} (by {desc['effect']:.1%})"
     m.flexible_prediction = pf
     return r
-
-
-def material_first(causes) -> None:
-    """Block each BRDF-space instrument cause that does not beat the material models on
-    held-out folds by more than its own threshold (sets ``blocked_by`` and a note). The bar
-    is the material model with the lowest held-out error: the flexible one, or a named one
-    (GGX, Beckmann, the grazing term, ...) where that predicts better - a grazing rise of the
-    diffuse term is a function of theta_in and theta_out, which the flexible model's theta_h
-    alone does not follow, while stray light also rises toward grazing incidence (the flexible
-    model's reciprocal grazing term follows both angles symmetrically, stray light only theta_in)."""
-    mats = [c for c in causes if c.kind == "material" and c.space == "brdf"]
-    if not mats:
-        return
-    flex = min(mats, key=lambda c: c.error)
-    for c in causes:
-        if c.kind != "instrument" or c.space != "brdf":
-            continue
-        c.vs_material = (flex.error - c.error) / flex.error if flex.error > 0 else 0.0
-        if not c.vs_material > c.threshold:
-            c.blocked_by = flex.name
-            if c.significant:
-                c.note = (c.note + "; " if c.note else "") + (
-                    f"a material departure explains as much (held-out error {c.error:.4g} vs {flex.name}'s "
-                    f"{flex.error:.4g}): not named as an instrument fault")

@@ -38,9 +38,10 @@ from glossrig.core.models.angles import normalize
 from glossrig.core.extraction.cylinder import SurfaceSamples, sample_angles, surface_samples
 from glossrig.core.calibration.markers import holder_marker_corners
 from glossrig.core.rig import load_rig
-from glossrig.core.models.ward import ward_from_angles
 
-from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD, BrdfModel, CauseResult, _scalar_cause, chi2
+from glossrig.core.diagnose.catalogue import (GAIN_THRESHOLD, HUBER_C, BrdfModel, CauseResult, _scalar_cause,
+                                              deviance, following_fit, one_value, weighted_solve)
+from glossrig.core.diagnose.error_model import huber_sigma, misfit_features
 
 FIT_ROWS = 6_000          # training rows used by the non-linear fits (held-out scoring uses all)
 UP = np.array([0.0, 1.0, 0.0])
@@ -118,11 +119,14 @@ class Geometry:
         return pts, nrm
 
     def evaluate(self, rows, offsets=None, dr=0.0, em=None):
-        """(L, F) of ``rows``: the lobe at the perturbed angles and the irradiance factor.
+        """(L, F, dL) of ``rows``: the lobe at the perturbed angles, the irradiance factor and the lobe's
+        slope along theta_h there (the error model's slope feature: a cause that moves the lobe is scored
+        with the sigma that follows it, :meth:`glossrig.core.diagnose.catalogue.BrdfModel.follow`).
         ``offsets``: LED id -> (3,) mm; ``dr``: radius change, mm; ``em``: (n, {LED: tilt})."""
         pts, nrm = self.surface(rows, dr)
         L = np.empty(len(rows))
         F = np.empty(len(rows))
+        dL = np.empty(len(rows))
         for led in np.unique(self.led[rows]):
             for rot in np.unique(self.rot[rows]):
                 sel = np.nonzero((self.led[rows] == led) & (self.rot[rows] == rot))[0]
@@ -133,7 +137,8 @@ class Geometry:
                 s = SurfaceSamples(self.uv[0][rows][sel], self.uv[1][rows][sel], pts[sel], nrm[sel],
                                    g.camera_centre, g.axis)
                 a = sample_angles(s, P, rot)
-                L[sel] = ward_from_angles(a["theta_in"], a["theta_out"], a["theta_h"], a["phi_h"], self.m.lobe)
+                L[sel] = self.m.lobe_at(a)
+                dL[sel] = self.m.lobe_slope(a)
                 E = self._irradiance(P, pts[sel], nrm[sel])
                 Ep = self._irradiance(P, self.patch, self.patch_n) / self._irradiance(self.lamps[led], self.patch,
                                                                                        self.patch_n)
@@ -142,7 +147,7 @@ class Geometry:
                     E = E * self.emission(P, pts[sel], n, tilt[led])
                     Ep = Ep * self.emission(P, self.patch[None], n, tilt[led])[0]
                 F[sel] = E / self.E0[rows][sel] / Ep
-        return L, F
+        return L, F, dL
 
 
 def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude, params_of, unit,
@@ -154,31 +159,47 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
     c = m.cols
     rng = np.random.default_rng(0)
     base_res = ext_res = 0.0
-    gains, fits = [], []
+    gains, fits, fold_errors = [], [], []
     scales = np.linspace(0.0, 2.0, 5)
     prof = np.zeros(len(scales))
     n_all = 0
 
-    def predict(x, rows, train_rows):
-        L, F = geo.evaluate(rows, **unpack(x))
-        one = np.full(len(rows), 1 / np.pi)
-        X = np.stack([one, L], axis=1) * F[:, None]
-        tr = np.isin(rows, train_rows) if train_rows is not rows else np.ones(len(rows), bool)
-        sig = c["sigma"][rows]
-        coef, *_ = np.linalg.lstsq(X[tr] / sig[tr, None], c["y"][rows][tr] / sig[tr], rcond=None)
-        return X @ coef
+    D = m.diffuse()
+    allrows = np.arange(len(c["y"]))
+    v0 = m.misfit["v0"]
+
+    def predict(x, train):
+        """The cause at parameters ``x`` with rho_d, rho_s (and a conditioned model's flexible material
+        columns) solved on the ``train`` rows with the sigma that follows the model
+        (:func:`~glossrig.core.diagnose.catalogue.following_fit`): (prediction, sigma) for every row."""
+        L, F, dL = geo.evaluate(allrows, **unpack(x))
+        _, pr, sig = following_fit(m, [D, L], dL, train, factor=F)
+        return pr, sig
+
+    def score(x, train, test):
+        pr, sig = predict(x, train)
+        return deviance((c["y"] - pr)[test], sig[test], c["sigma_model"][test])
 
     def fit(train_idx):
+        train = np.zeros(len(allrows), bool)
+        train[train_idx] = True
         sub = train_idx if len(train_idx) <= FIT_ROWS else np.sort(rng.choice(train_idx, FIT_ROWS, False))
-        y, sig = c["y"][sub], c["sigma"][sub]
-        one = np.full(len(sub), 1 / np.pi)
+        y, sig0 = c["y"][sub], c["sigma"][sub]
+        flex = m.flexible_columns(train)[sub] if m.flexible else np.zeros((len(sub), 0))
         groups = {k: np.flatnonzero(geo.led[sub] == k) for k in geo.leds}
-        last = {}  # the last evaluated x and its (L, F), for the Jacobian
+        last = {}  # the last evaluated x and its (L, F, dL), for the Jacobian
 
-        def resid(L, F):
-            X = np.stack([one, L], axis=1) * F[:, None]
-            coef, *_ = np.linalg.lstsq(X / sig[:, None], y / sig, rcond=None)
-            return (y - X @ coef) / sig
+        def resid(L, F, dL):
+            # the deviance as a sum of squares: the normalised residuals with the sigma that follows the model
+            # (rho_d, rho_s and the flexible columns solved with the base's sigma), and per row
+            # sqrt(log(sigma^2 / v0) + 1), whose squares sum to sum(log sigma^2) plus a constant
+            X = np.column_stack([D[sub], L, flex]) * F[:, None]
+            coef, _ = weighted_solve(X, y, sig0, 2)
+            pr = X @ coef
+            mis = m.misfit
+            sig = np.sqrt(mis["v0"][sub] + misfit_features(pr, coef[1] * L * F, coef[1] * dL * F) @ mis["k"])
+            r = y - pr
+            return np.concatenate([r / huber_sigma(sig, r, HUBER_C), np.sqrt(np.log(sig ** 2 / v0[sub]) + 1.0)])
 
         def fun(x):
             last["x"], last["LF"] = np.array(x, float), geo.evaluate(sub, **unpack(x))
@@ -188,48 +209,44 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
             # forward differences (step 1e-3 max(1, |x|), as least_squares' diff_step=1e-3), each column
             # re-evaluating the geometry of its own LED's rows only (a per-LED parameter moves nothing
             # else; rho_d and rho_s are re-solved over all rows, so the column is the exact difference)
-            L0, F0 = last["LF"] if np.array_equal(last.get("x"), x) else geo.evaluate(sub, **unpack(x))
-            r0 = resid(L0, F0)
-            J = np.empty((len(sub), len(x)))
+            L0, F0, S0 = last["LF"] if np.array_equal(last.get("x"), x) else geo.evaluate(sub, **unpack(x))
+            r0 = resid(L0, F0, S0)
+            J = np.empty((len(r0), len(x)))
             for j in range(len(x)):
                 h = 1e-3 * max(1.0, abs(x[j]))
                 h = -h if x[j] + h > hi[j] else h
                 xj = np.array(x, float)
                 xj[j] += h
                 if owners[j] is None:
-                    L, F = geo.evaluate(sub, **unpack(xj))
+                    L, F, S = geo.evaluate(sub, **unpack(xj))
                 else:
                     rows = groups[owners[j]]
-                    L, F = L0.copy(), F0.copy()
-                    L[rows], F[rows] = geo.evaluate(sub[rows], **unpack(xj))
-                J[:, j] = (resid(L, F) - r0) / h
+                    L, F, S = L0.copy(), F0.copy(), S0.copy()
+                    L[rows], F[rows], S[rows] = geo.evaluate(sub[rows], **unpack(xj))
+                J[:, j] = (resid(L, F, S) - r0) / h
             return J
 
         return least_squares(fun, x0, jac=jac, bounds=(lo, hi), x_scale=np.maximum(hi - lo, 1e-9) / 20,
                              max_nfev=30 * len(x0)).x
 
-    allrows = np.arange(len(c["y"]))
     for train, test in m.halves():
-        tr = allrows[train]
-        x = fit(tr)
+        x = fit(allrows[train])
         fits.append(x)
-        p0 = predict(base, allrows, tr)
-        p1 = predict(x, allrows, tr)
-        e0 = chi2((c["y"] - p0)[test], c["sigma"][test])
-        e1 = chi2((c["y"] - p1)[test], c["sigma"][test])
+        e0, e1 = score(base, train, test), score(x, train, test)
         for j, sc in enumerate(scales):
-            pj = predict(base + sc * (x - base), allrows, tr)
-            prof[j] += chi2((c["y"] - pj)[test], c["sigma"][test]) * test.sum()
+            prof[j] += score(base + sc * (x - base), train, test) * test.sum()
         base_res += e0 * test.sum()
         ext_res += e1 * test.sum()
         n_all += test.sum()
         gains.append((e0 - e1) / e0)
+        fold_errors.append(e1)
     xa = fit(allrows)
     spread = np.abs(fits[0] - fits[1]) / 2
     profile = {"grid": scales.tolist(), "error": (prof / n_all).tolist(), "along": "scale of the fitted parameters"}
     r = CauseResult(name, "brdf", doc, dict(params_of(xa), unit=unit, fold_estimates=[params_of(f) for f in fits]),
                     params_of(spread), ext_res / n_all, base_res / n_all, gains, len(x0), profile=profile,
-                    magnitude=magnitude(xa), prediction=predict(xa, allrows, allrows))
+                    magnitude=magnitude(xa), prediction=predict(xa, np.ones(len(allrows), bool))[0],
+                    fold_errors=fold_errors)
     e = np.asarray(profile["error"])
     if (e.max() - e.min()) / max(e.min(), 1e-12) < GAIN_THRESHOLD:
         r.identifiable = False
@@ -237,12 +254,23 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
                   "the data cannot tell this cause apart")
     else:
         r.note = "split: the two halves of the sample's pixel rows (per-LED parameters); stderr = fold spread"
+        # the folds' agreement judged on the effect, not on the parameters: per-LED offsets along a direction
+        # the data barely constrain (towards the sample: only the irradiance's scale changes, which rho_d and
+        # rho_s take) scatter between the halves, up to the bounds, while the effect they describe agrees
+        allr = np.ones(len(allrows), bool)
+        p0 = predict(base, allr)[0]
+        effects = [predict(f, allr)[0] / np.maximum(p0, 1e-12) - 1.0 for f in fits]
+        one_value(r, effects, np.mean(effects, axis=0), -np.inf, np.inf, np.zeros(len(allrows)))
     return r
 
 
-def geometry_causes(m: BrdfModel, log=None) -> list[CauseResult]:
-    """LED position error, LED emission and sample radius error; ``log`` (callable(CauseResult)) is
-    called as each finishes (progress)."""
+#: the causes of :func:`geometry_causes`, in its order
+GEOMETRY_CAUSES = ("led_position_error", "led_emission", "sample_radius_error")
+
+
+def geometry_causes(m: BrdfModel, log=None, only=GEOMETRY_CAUSES) -> list[CauseResult]:
+    """LED position error, LED emission and sample radius error (those of ``only``); ``log``
+    (callable(CauseResult)) is called as each finishes (progress)."""
     say = log or (lambda r: None)
     geo = Geometry(m)
     leds = geo.leds
@@ -255,12 +283,13 @@ def geometry_causes(m: BrdfModel, log=None) -> list[CauseResult]:
            "rad, d ~ 300 mm), and the irradiance cos(theta_in)/d^2 on the sample and on the white patch change by "
            "different amounts: a per-LED gradient over the sample. Magnitude: RMS of the fitted offsets per axis (mm).")
     off = lambda x: {"offsets": {k: x[3 * i:3 * i + 3] for i, k in enumerate(leds)}}
-    out.append(_vector_cause(
-        geo, "led_position_error", doc, off, np.zeros(3 * nl), np.zeros(3 * nl), np.full(3 * nl, -15.0), np.full(3 * nl, 15.0),
-        lambda x: float(np.sqrt(np.mean(np.square(x)))),
-        lambda x: {"offset_mm": {str(k): [float(v) for v in x[3 * i:3 * i + 3]] for i, k in enumerate(leds)}},
-        "mm (per LED, holder frame)", [k for k in leds for _ in range(3)]))
-    say(out[-1])
+    if "led_position_error" in only:
+        out.append(_vector_cause(
+            geo, "led_position_error", doc, off, np.zeros(3 * nl), np.zeros(3 * nl), np.full(3 * nl, -15.0),
+            np.full(3 * nl, 15.0), lambda x: float(np.sqrt(np.mean(np.square(x)))),
+            lambda x: {"offset_mm": {str(k): [float(v) for v in x[3 * i:3 * i + 3]] for i, k in enumerate(leds)}},
+            "mm (per LED, holder frame)", [k for k in leds for _ in range(3)]))
+        say(out[-1])
 
     # ---- LED emission pattern: cos^n about a tilted axis
     doc = ("LED emission pattern (thesis 4.1.3, fig. 4.2): the radiant intensity left after the diffuser falls as "
@@ -270,20 +299,21 @@ def geometry_causes(m: BrdfModel, log=None) -> list[CauseResult]:
            "part (n x tilt). Independent of the lobe and of the image position, unlike vignetting.")
     em = lambda x: {"em": (x[0], {k: x[1 + 2 * i:3 + 2 * i] for i, k in enumerate(leds)})}
     x0 = np.concatenate([[20.0], np.zeros(2 * nl)])
-    out.append(_vector_cause(
-        geo, "led_emission", doc, em, np.zeros(1 + 2 * nl), x0, np.concatenate([[0.0], np.full(2 * nl, -0.15)]),
-        np.concatenate([[400.0], np.full(2 * nl, 0.15)]), lambda x: float(x[0]),
-        lambda x: {"n": float(x[0]), "tilt_deg": {str(k): [float(math.degrees(v)) for v in x[1 + 2 * i:3 + 2 * i]]
-                                                  for i, k in enumerate(leds)}},
-        "cos exponent n; axis tilt (up, side) degrees", [None] + [k for k in leds for _ in range(2)]))
-    say(out[-1])
+    if "led_emission" in only:
+        out.append(_vector_cause(
+            geo, "led_emission", doc, em, np.zeros(1 + 2 * nl), x0, np.concatenate([[0.0], np.full(2 * nl, -0.15)]),
+            np.concatenate([[400.0], np.full(2 * nl, 0.15)]), lambda x: float(x[0]),
+            lambda x: {"n": float(x[0]), "tilt_deg": {str(k): [float(math.degrees(v)) for v in x[1 + 2 * i:3 + 2 * i]]
+                                                      for i, k in enumerate(leds)}},
+            "cos exponent n; axis tilt (up, side) degrees", [None] + [k for k in leds for _ in range(2)]))
+        say(out[-1])
 
     # ---- sample radius error: one global scalar (leave one LED out)
     doc = ("Sample radius error (thesis 4.1.4: paper and sample thickness): the wrapped sample's radius differs from "
            "the rig file's by dr. Every pixel then sees another point of the surface with another normal, so the "
            "angles and the irradiance change; the calibrated poses are kept. A shift of the normal by ~dr/r "
            "times the distance from the silhouette: small except near the sample's edges.")
-    one = np.full(len(m.rows), 1 / np.pi)
+    one = m.diffuse()
     allrows = np.arange(len(m.rows))
     cache = {}
 
@@ -292,9 +322,11 @@ def geometry_causes(m: BrdfModel, log=None) -> list[CauseResult]:
         key = round(float(dr) / 0.002) * 0.002
         if key not in cache:
             cache[key] = geo.evaluate(allrows, dr=key)
-        L, F = cache[key]
-        return [one, L], F
+        L, F, dL = cache[key]
+        return [one, L], F, dL
 
-    out.append(_scalar_cause(m, "sample_radius_error", doc, make_r, (-3.0, 3.0), "dr_mm", "mm", grid_n=13))
-    say(out[-1])
+    if "sample_radius_error" in only:
+        out.append(_scalar_cause(m, "sample_radius_error", doc, make_r, (-3.0, 3.0), "dr_mm", "mm", grid_n=13))
+        one_value(out[-1], out[-1].params["fold_estimates"], out[-1].params["dr_mm"], -3.0, 3.0, 0.0)
+        say(out[-1])
     return out

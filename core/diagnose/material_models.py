@@ -320,42 +320,47 @@ def _refit_cause(m, a, kind, start):
     return e1s / n_tot, e0s / n_tot, gains, fit_lobe(a, y, 1 / sig, kind, start), robust.result()
 
 
+#: the lobe-model causes of :func:`material_cause` (the flexible model is :mod:`.flexible`'s)
+LOBE_CAUSES = ("ggx_lobe", "beckmann_lobe", "grazing_lobe")
+
+
 def material_causes(m) -> list:
     """Causes of the catalogue for the material models (BRDF space, leave-one-LED-out folds of
-    :class:`glossrig.core.diagnose.catalogue.BrdfModel`)."""
-    from glossrig.core.diagnose.catalogue import CauseResult
+    :class:`glossrig.core.diagnose.catalogue.BrdfModel`): :func:`material_cause` of each of LOBE_CAUSES."""
+    return [material_cause(m, name) for name in LOBE_CAUSES]
+
+
+def material_cause(m, name: str):
+    """One material cause of LOBE_CAUSES fitted and scored on ``m`` (also on data an instrument cause's
+    effect was taken out of: :func:`glossrig.core.diagnose.catalogue.explain_material`)."""
+    from glossrig.core.diagnose.catalogue import CauseResult, _scalar_cause
 
     c = m.cols
-    out = []
     t = m.data.table.iloc[m.rows]
     a = angle_arrays(t)
     w = m.lobe
     start = (w.alpha_x, w.alpha_y, w.lobe_rotation)
     names = ("rho_d", "rho_s", "alpha_x", "alpha_y", "lobe_rotation")
-
-    # ---- GGX lobe: the shape refitted per fold (same number of parameters as Ward's)
-    doc = ("Microfacet lobe shape: Ward's Gaussian lobe (eq. 4.79) replaced by the anisotropic GGX / "
-           "Trowbridge-Reitz lobe D G2 / (4 cos_i cos_o) with height-correlated Smith masking (Walter et al. "
-           "2007, Heitz 2014), axes turned as in eq. 4.80. Real glossy surfaces have GGX's long tails: the Ward "
-           "fit then underestimates the tails and overshoots the flanks of the peak.")
-    lobe_docs = [("ggx", "ggx_lobe", doc, "GGX roughness, radians")]
-
-    # ---- Cook-Torrance lobe with the Beckmann distribution (same number of parameters as Ward's)
-    doc = ("Cook-Torrance lobe: Ward's lobe replaced by the microfacet lobe D G2 / (4 cos_i cos_o) with the "
-           "anisotropic Beckmann distribution and its height-correlated Smith masking (Cook & Torrance 1982; "
-           "Walter et al. 2007, Lambda by their rational fit), axes turned as in eq. 4.80. Ward's lobe is a "
-           "Beckmann-like Gaussian in tan(theta_h) without masking and with a 1/sqrt(cos_i cos_o) factor: the two "
-           "part at grazing angles and on rough lobes, where masking removes light.")
-    lobe_docs.append(("beckmann", "beckmann_lobe", doc, "Beckmann roughness, radians"))
-    for kind, name, doc, unit in lobe_docs:
+    if name in ("ggx_lobe", "beckmann_lobe"):
+        if name == "ggx_lobe":
+            kind, unit = "ggx", "GGX roughness, radians"
+            doc = ("Microfacet lobe shape: Ward's Gaussian lobe (eq. 4.79) replaced by the anisotropic GGX / "
+                   "Trowbridge-Reitz lobe D G2 / (4 cos_i cos_o) with height-correlated Smith masking (Walter et al. "
+                   "2007, Heitz 2014), axes turned as in eq. 4.80. Real glossy surfaces have GGX's long tails: the "
+                   "Ward fit then underestimates the tails and overshoots the flanks of the peak.")
+        else:
+            kind, unit = "beckmann", "Beckmann roughness, radians"
+            doc = ("Cook-Torrance lobe: Ward's lobe replaced by the microfacet lobe D G2 / (4 cos_i cos_o) with the "
+                   "anisotropic Beckmann distribution and its height-correlated Smith masking (Cook & Torrance 1982; "
+                   "Walter et al. 2007, Lambda by their rational fit), axes turned as in eq. 4.80. Ward's lobe is a "
+                   "Beckmann-like Gaussian in tan(theta_h) without masking and with a 1/sqrt(cos_i cos_o) factor: the "
+                   "two part at grazing angles and on rough lobes, where masking removes light.")
         e1, e0, gains, f, robust = _refit_cause(m, a, kind, start)
-        out.append(CauseResult(name, "brdf", doc, dict({k: getattr(f, k) for k in names}, unit=unit),
-                               f.stderr, e1, e0, gains, 0, magnitude=f.alpha_x, prediction=f.predict(a),
-                               robust=robust))
-
+        return CauseResult(name, "brdf", doc, dict({k: getattr(f, k) for k in names}, unit=unit),
+                           f.stderr, e1, e0, gains, 0, magnitude=f.alpha_x, prediction=f.predict(a), robust=robust)
+    if name != "grazing_lobe":
+        raise ValueError(f"no material cause {name!r}")
     # ---- a diffuse term with a grazing factor (Burley 2012): one parameter, F_D90
-    from glossrig.core.diagnose.catalogue import _scalar_cause
-
     doc = ("Grazing term: the diffuse part rho_d / pi times Burley's factor [1 + (F_D90 - 1)(1 - cos theta_in)^5]"
            "[1 + (F_D90 - 1)(1 - cos theta_out)^5] (Burley, \"Physically-Based Shading at Disney\", 2012, sec. 5.3), "
            "the Ward lobe kept. A Lambertian diffuse term (eq. 4.79) is constant; measured diffuse reflection of "
@@ -364,8 +369,6 @@ def material_causes(m) -> list:
            "leaving the surface). F_D90 > 1 is a rise, < 1 a fall; Burley ties it to the roughness, "
            "F_D90 = 0.5 + 2 r cos^2 theta_d, here it is fitted. One parameter, reciprocal.")
     one = np.full_like(c["L"], 1 / np.pi)
-    out.append(_scalar_cause(m, "grazing_lobe", doc,
-                             lambda f90: ([one * grazing_factor(c["theta_in"], c["theta_out"], f90), c["L"]], None),
-                             GRAZING_F90_RANGE, "F_D90", "diffuse factor at grazing incidence and viewing"))
-
-    return out
+    return _scalar_cause(m, "grazing_lobe", doc,
+                         lambda f90: ([one * grazing_factor(c["theta_in"], c["theta_out"], f90), c["L"]], None),
+                         GRAZING_F90_RANGE, "F_D90", "diffuse factor at grazing incidence and viewing")

@@ -24,9 +24,9 @@ def ranking(causes: list[CauseResult]) -> list[CauseResult]:
     (:func:`.stray_light.apply_frame_evidence`; its held-out fold gains are recorded beside it).
 
     Within the other BRDF-space causes an eligible instrument cause comes before the material
-    models - it is eligible only by beating every material model's held-out error by its
-    threshold (:func:`.flexible.material_first`), so its gain is the larger, as the order by gain
-    had it - and the material models are ordered by their *robust* held-out gain
+    models - it is fitted on top of the best material model and significant only by beating it
+    held out (:func:`.catalogue.instrument_bases`): the material departure is there, and the
+    instrument effect on top of it is the finding about the rig - and the material models are ordered by their *robust* held-out gain
     (:class:`.catalogue.RobustScore`, the median held-out relative residual; the squared
     normalised gain where none was computed). The issue's criterion is the extension that gains
     most against the true BRDF in median relative error at the rig's angles; the mean squared

@@ -17,8 +17,9 @@ an LED is on (D the LED's distance from the cylinder axis), background and holde
     produce; where the BRDF data agree with the veil the frames measured (the BRDF model with the
     veil of that s held fixed - no parameter of it fitted to the BRDF rows - beats the base model
     on every LED's rows),
-    ``stray_light`` is named even where a material model would otherwise block it
-    (:func:`glossrig.core.diagnose.flexible.material_first`).
+    ``stray_light`` is named even where its free BRDF-space fit on top of the best material model
+    (:func:`glossrig.core.diagnose.catalogue.instrument_bases`) gains too little - the flexible
+    model's reciprocal grazing term takes up the symmetric part of its 1 / cos theta_in rise.
 
 Measurement (:func:`dark_veil`, in the frame-space stage on the crops diagnose already reads).
 Per LED and CFA colour, the dark pixels are chosen on one half of the exposures (even / odd index,
@@ -245,7 +246,7 @@ def apply_frame_evidence(m, causes: list[CauseResult], ev: dict | None) -> None:
       that s held fixed (:func:`fixed_veil_test`) and, where the BRDF data agree with it (by the
       usual rule on that test, with no failed LED allowed: a lower error on every LED's rows, the pooled gain above the
       threshold), it takes that test's result and s (the free BRDF-space s is kept as ``s_brdf``)
-      and carries ``frame_signature`` - eligible whatever material-first says. (Twin captures without
+      and carries ``frame_signature``. (Twin captures without
       stray light read s ~ 2e-6 there, 1000 times below the catalogue's smallest stray light: such a
       veil is no signature because the BRDF data do not gain from it);
     * otherwise, where the BRDF-space s exceeds the frames' bound ``s_frames (1 + spread)`` by more than
@@ -268,6 +269,8 @@ def apply_frame_evidence(m, causes: list[CauseResult], ev: dict | None) -> None:
             c.params.update({"s_brdf": s_b, "s": ev["s"], "fixed_by": "frames"})
             c.stderr["s"] = ev["se"]
             c.base_error, c.error, c.fold_gains, c.prediction, c.magnitude = e0, e1, gains, pred, ev["s"]
+            # the free fit's held-out robust score does not describe the fixed veil (scored on every LED's rows)
+            c.params["free_fit_robust"], c.robust = c.robust, None
             c.frame_signature = True
             c.note = (f"frame-space signature: the pixels that see nothing read a veil of s = {ev['s']:.3g} +- "
                       f"{ev['se']:.2g} under every LED (no material lights them); the BRDF data agree: with s held "

@@ -235,12 +235,14 @@ def heldout_structure(m, pred, x, folds, cells=None) -> dict:
             "n_params": nb, "threshold": thr, "significant": bool(gain > thr and consistent_folds(gains))}
 
 
-def unexplained(m, frame_structure: dict | None = None, after=None) -> list[dict]:
+def unexplained(m, frame_structure: dict | None = None, after=None, after_model=None) -> list[dict]:
     """One entry per variable: ``{"variable", "space", "effect", "significant", "gain",
     "threshold", "fold_gains", "split", "p", "profile", ...}`` (module docstring); ``after``: the
     named BRDF-space cause (a :class:`~glossrig.core.diagnose.catalogue.CauseResult` with its
     ``prediction``), whose residual is tested again against POSITION_VARS (within angle cells
-    after a material or reference model)."""
+    after a material or reference model); ``after_model``: the model ``after`` was fitted on, whose
+    noise its entries are judged with (an instrument cause's conditioned model,
+    :func:`glossrig.core.diagnose.catalogue.instrument_bases`; default ``m``)."""
     from glossrig.core.diagnose.flexible import fit_flexible
 
     c = m.cols
@@ -261,7 +263,8 @@ def unexplained(m, frame_structure: dict | None = None, after=None) -> list[dict
     if again:
         pa = flexible if after.name == "flexible_material" else after.prediction
         # after.prediction: the cause fitted on all rows (the flexible one's equals pred_all, flexible_cause)
-        out += _brdf_entries(m, pa, after.prediction, {k: vars_[k] for k in names}, after=after.name, partial_angles=material)
+        out += _brdf_entries(after_model if after_model is not None else m, pa, after.prediction,
+                             {k: vars_[k] for k in names}, after=after.name, partial_angles=material)
     n_frame = len(frame_vars) if frame_structure else 0
     level = P_LEVEL / max(n_frame, 1)
     for k, key in (frame_vars.items() if frame_structure else ()):

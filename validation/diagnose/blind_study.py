@@ -90,6 +90,28 @@ SLOTS: tuple[tuple[str, ...], ...] = ((),) + tuple((c,) for c in CAUSES) + PAIRS
 NULL_SEED = 5000      # independent null captures: seeds 5000 + j (trials use 1000 + k, the fits 999 - m)
 
 
+def use_leds(work: Path, spec: str) -> None:
+    """Set LEDS (every capture's LEDs) from ``spec`` (ids or a row name of the thesis rig), kept in
+    WORK/leds.json: a work folder's trials, nulls and calibration share one LED set, so a later run on it
+    with other LEDs stops with a message."""
+    global LEDS
+    from glossrig.core.rig import load_rig
+    from validation.common import RIG
+
+    leds = tuple(load_rig(RIG).select_leds(spec))
+    f = work / "leds.json"
+    if f.exists():
+        kept = tuple(json.loads(f.read_text()))
+        if kept != leds:
+            raise SystemExit(f"{work} holds a study of LEDs {kept}, not {leds}: give --leds {','.join(map(str, kept))} "
+                             f"or another --work")
+    elif (work / "trials.json").exists() and leds != (6, 9):
+        raise SystemExit(f"{work} holds a study made before --leds (LEDs 6, 9): give --leds 6,9 or another --work")
+    else:
+        f.write_text(json.dumps(list(leds)))
+    LEDS = leds
+
+
 def material_spec(m: str) -> str:
     """The ``--material`` of a study material: a Table 9.1 name or an RGL measurement."""
     return m if m in WARD_MATERIALS else f"measured:{rgl_dir() / (m + '.bsdf')}"
@@ -249,6 +271,10 @@ def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False, prev: di
             "diagnose": a.diagnose_code}
     if not reuse:
         hide(cap, material, 1000 + k, hidden, null)
+    if getattr(a, "no_diagnose", False):        # the capture alone; --rediagnose diagnoses it later
+        return {"trial": k, "material": material, "hidden": hidden, "verdict": None, "ranking": [],
+                "true_magnitude": {c: true_magnitude(c, v, cap) for c, v in hidden.items()},
+                "time_s": time.time() - t0, "code": dict(code, diagnose=None), "capture_reused": reuse}
     rep = run_diagnose(cap, work / f"t{k:03d}_report", a, fit, ref)
     by = {c["name"]: c for c in rep["causes"]}
     sig_unexpl = sorted((e for e in rep.get("unexplained", []) if e.get("significant")), key=lambda e: -e["effect"])
@@ -279,6 +305,9 @@ def null_capture(j: int, work: Path, a, bases: dict, ref) -> dict:
     code = {"capture": None if reuse else code_version(), "diagnose": a.diagnose_code}
     if not reuse:
         simulate(cap, material, NULL_SEED + j)
+    if getattr(a, "no_diagnose", False):
+        return {"null": j, "material": material, "seed": NULL_SEED + j, "verdict": None, "capture_reused": reuse,
+                "time_s": time.time() - t0, "code": dict(code, diagnose=None), "causes": {}}
     rep = run_diagnose(cap, work / f"n{j:02d}_report", a, bases[material][1], ref)
     if not a.keep_raws:
         for f in cap.glob("*.dng"):
@@ -357,16 +386,19 @@ def _rate(ts: list[dict], f) -> str:
 
 
 def summarise(trials: list[dict], work: Path | None = None) -> str:
+    trials = [t for t in trials if t.get("verdict") is not None]        # captured but not yet diagnosed: left out
     singles = [t for t in trials if len(t["hidden"]) == 1]
     catalogued = [t for t in singles if next(iter(t["hidden"])) not in OPEN_WORLD]
     openw = [t for t in singles if next(iter(t["hidden"])) in OPEN_WORLD]
     pairs = [t for t in trials if len(t["hidden"]) == 2]
     nulls = [t for t in trials if not t["hidden"]]
     ind = json.loads((work / "nulls.json").read_text()) if work and (work / "nulls.json").exists() else []
+    ind = [n for n in ind if n.get("verdict") is not None]
     L = ["# diagnose blind study", "",
          "Regenerate everything - calibration, per-material null captures and fits, trials, independent null "
          "captures, this file (resumable):", "",
-         "    nice -n 5 python -m validation.diagnose.blind_study --work /tmp/blind --trials 60", "",
+         f"    nice -n 5 python -m validation.diagnose.blind_study --work /tmp/blind --trials {len(trials)}"
+         + ("" if LEDS == (6, 9) else f" --leds {','.join(map(str, LEDS))}"), "",
          f"Set-up: materials {', '.join(MATERIALS)} ({', '.join(WARD_MATERIALS)} is the twin's Ward model, the "
          "others real RGL measurements) on the thesis rig, "
          f"LEDs {LEDS}, rotation 0, scale 0.25, `--ideal`; one nominal camera/lamp calibration and lambert:0.8 "
@@ -426,6 +458,12 @@ def main(argv=None):
     ap.add_argument("--lamps", help="lamps.json of the same calibration")
     ap.add_argument("--reference", help="lambert:0.8 reference capture (LEDs 6 and 9 at rotation 0 or a superset)")
     ap.add_argument("--nulls", type=int, default=6, help="independent null captures after the trials")
+    ap.add_argument("--report", default=str(OUT), help="the Markdown report written (default: %(default)s)")
+    ap.add_argument("--no-diagnose", action="store_true",
+                    help="make the captures only (with --keep-raws): a later run with --rediagnose diagnoses them")
+    ap.add_argument("--leds", default=",".join(map(str, LEDS)),
+                    help="LEDs of every capture: ids or a row name (default: %(default)s; a work folder keeps the LEDs "
+                         "it was started with, WORK/leds.json)")
     ap.add_argument("--summary-only", action="store_true", help="rewrite the Markdown from WORK/trials.json")
     ap.add_argument("--keep-raws", action="store_true",
                     help="keep each trial's raw files (about 110 MB a trial) so --rediagnose need not simulate again")
@@ -436,6 +474,7 @@ def main(argv=None):
     a = ap.parse_args(argv)
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
+    use_leds(work, a.leds)
     store = work / "trials.json"
     done = json.loads(store.read_text()) if store.exists() else []
     if not a.summary_only:
@@ -465,7 +504,7 @@ def main(argv=None):
                 continue
             done.append(trial(k, work, a, bases, ref))
             store.write_text(json.dumps(done, indent=1))
-            OUT.write_text(summarise(done, work))
+            Path(a.report).write_text(summarise(done, work))
             print(json.dumps({x: done[-1][x] for x in ("trial", "material", "hidden", "verdict", "ranking")}),
                   flush=True)
         nstore = work / "nulls.json"
@@ -478,7 +517,7 @@ def main(argv=None):
             nulls.append(null_capture(j, work, a, bases, ref))
             nstore.write_text(json.dumps(nulls, indent=1))
             print(json.dumps({k: v for k, v in nulls[-1].items() if k != "causes"}), flush=True)
-    OUT.write_text(summarise(done, work))
+    Path(a.report).write_text(summarise(done, work))
 
 
 if __name__ == "__main__":
