@@ -676,8 +676,8 @@ def _brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
     alone = alone + geometry_causes(m, log=lambda r: done([r]))
     mi, mrot = instrument_bases(m, mats)
     m.instrument = mi
-    if mi is m and mrot is m:
-        return alone + mats
+    if mi is m and mrot is m:        # no material to fit them on top of: the causes are selected among themselves
+        return explain_material(m, alone, alone, mats, m, m) + mats
     say(f"  instrument causes done on the Ward lobe; again on top of {mi.material_name} ({took()})")
     on_top = instrument_causes(mi, mrot, done, rotation=None if mrot is m else True)
     on_top = on_top + geometry_causes(mi, log=lambda r: done([r]))
@@ -721,7 +721,7 @@ def explain_material(m: BrdfModel, alone: list[CauseResult], on_top: list[CauseR
         if x1.fitted_on != "ward":
             _record_base(x1, mrot if x1.name == "sample_rotation_offset" else mi)
     mats = [c for c in materials if c.significant and c.kind == "material"]
-    if not pool:
+    if not pool or (len(pool) == 1 and not mats and on_top is alone):
         return [results[x.name] for x in alone]
     first = max([(c.gain, c) for c in mats] + [(x0.gain, x0) for x0, _ in pool.values() if x0.significant],
                 default=None, key=lambda t: t[0])
