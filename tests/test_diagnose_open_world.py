@@ -350,3 +350,20 @@ def test_shutter_error_found_with_magnitude():
         (c.name, round(c.gain, 5), c.significant) for c in causes]
     assert abs(w.params["delta_s"] - delta) < 0.15 * delta, (w.params, delta)
     assert winner(frame_causes(_shutter_frames(9, 0.0))) is None
+
+
+def test_unexplained_variables_are_ordered_by_held_out_gain():
+    """The variables "unexplained" names, strongest first by held-out gain, not by the in-sample effect
+    (the blind study's axis step on sample_2_6: phi_h and the axis position spread alike in sample, 0.0534 and
+    0.0530, the axis position predicts the held-out LED better, 0.904 against 0.893); the named cause's own
+    residual's entries (``after``) decide first."""
+    from glossrig.core.diagnose.unexplained import deciding_variables
+
+    e = [{"variable": "phi_h", "significant": True, "gain": 0.893, "effect": 0.0534, "space": "brdf"},
+         {"variable": "axis_position", "significant": True, "gain": 0.904, "effect": 0.0530, "space": "brdf"},
+         {"variable": "theta_h", "significant": False, "gain": 0.95, "effect": 0.2, "space": "brdf"}]
+    assert deciding_variables("none", None, e) == ["axis_position", "phi_h"]
+    after = [dict(e[0], after="led_emission", gain=0.01), dict(e[1], after="led_emission", gain=0.76)]
+    assert deciding_variables("led_emission", "instrument", e + after)[0] == "axis_position"
+    after = [dict(e[0], after="led_emission", gain=0.5)]
+    assert deciding_variables("led_emission", "instrument", e + after) == ["phi_h", "axis_position"]

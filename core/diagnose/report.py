@@ -193,8 +193,15 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
     causes = sorted(causes, key=lambda c: c.gain, reverse=True)
     unexplained = unexplained or []
     v = final_verdict(causes, unexplained)
+    from glossrig.core.diagnose.unexplained import deciding_variables
+
+    named = verdict(causes)
     rep = {"base_error": base_errors.get("brdf"), "base_errors": base_errors, "verdict": v,
            "ranking": [c.name for c in ranking(causes)],
+           # the variables the structure no cause explains follows, the strongest (held-out gain) first
+           "unexplained_variables": (deciding_variables(named, next((c.kind for c in causes if c.name == named),
+                                                                     None), unexplained)
+                                     if v == "unexplained" else []),
            "calibration": calibration or {},
            "unexplained": [{"variable": e["variable"], "effect": e["effect"], "significant": e["significant"],
                             "space": e.get("space"), "gain": e.get("gain"), "threshold": e.get("threshold"),
@@ -211,8 +218,10 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
                                "a material model also lowering the median held-out relative residual (robust); "
                                "the verdict is the largest significant gain, frame/pixel-space causes first, "
                                "material models by their robust gain; "
-                               "a BRDF-space instrument cause must also beat the flexible material model "
-                               "(eligible); 'unexplained' when residual structure remains that no eligible cause "
+                               "a BRDF-space instrument cause is fitted on top of the best material model and "
+                               "the material models and instrument causes that stand together are chosen by "
+                               "forward stepwise selection (eligible; glossrig.core.diagnose.catalogue."
+                               "explain_material); 'unexplained' when residual structure remains that no eligible cause "
                                "explains: in BRDF space a variable carries structure when a smooth function of it "
                                "(relative correction on quantile bins), fitted on the training folds, passes the "
                                "same rule (gain_threshold + per_extra_parameter * bins) on the held-out folds; "
@@ -231,10 +240,14 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
         L.append("No cause lowers the held-out error by more than the stated threshold in (nearly) every fold: "
                  "no significant discrepancy between the measurement and the model.")
     elif v == "unexplained":
-        L.append("Structured residual remains that no catalogue cause explains: "
-                 + ", ".join(f"{e['variable']} (effect {e['effect']:.3g} {e.get('effect_unit', '')}"
-                             + (f", after {e['after']}" if e.get("after") else "") + ")"
-                             for e in unexplained if e["significant"]) + ".")
+        by_var: dict[str, dict] = {}
+        for e in unexplained:
+            if e["significant"]:
+                by_var.setdefault(e["variable"], e)
+        L.append("Structured residual remains that no catalogue cause explains, strongest first: "
+                 + ", ".join(f"{x} (effect {by_var[x]['effect']:.3g} {by_var[x].get('effect_unit', '')}"
+                             + (f", after {by_var[x]['after']}" if by_var[x].get("after") else "") + ")"
+                             for x in rep["unexplained_variables"] if x in by_var) + ".")
     else:
         w = next(c for c in causes if c.name == v)
         L.append(f"`{v}` lowers the held-out error of the {w.space}-space model from {w.base_error:.4g} to "

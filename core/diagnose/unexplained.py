@@ -373,3 +373,26 @@ def open_world_verdict(named: str, kind: str | None, entries: list[dict]) -> str
     if kind in ("material", "reference") and any(e["variable"] in INSTRUMENT_VARS for e in sig):
         return "unexplained"
     return named
+
+
+def deciding_variables(named: str, kind: str | None, entries: list[dict]) -> list[str]:
+    """The variables that carry the structure the verdict "unexplained" stands on, the strongest first: the
+    significant entries :func:`open_world_verdict` decided by - the named BRDF-space cause's own residual's
+    (``after``) where it was tested again, else every significant entry - ordered by their held-out gain
+    (frame-space entries, which have none, by their effect after the BRDF-space ones). The in-sample effect
+    does not order them: correlated variables (phi_h and the axis position on a cylinder lit from above)
+    spread alike in sample, while the held-out gain says which one predicts the held-out LEDs."""
+    sig = [e for e in entries if e["significant"]]
+    after = [e for e in sig if e.get("after") == named]
+    use = after or sig
+    if kind in ("material", "reference") and not after:
+        use = [e for e in sig if e["variable"] in INSTRUMENT_VARS] or sig
+    rest = [e for e in sig if e not in use]
+
+    def order(es):
+        return sorted(es, key=lambda e: (e.get("gain") is None, -(e.get("gain") or 0.0), -e["effect"]))
+    seen: list[str] = []
+    for e in order(use) + order(rest):
+        if e["variable"] not in seen:
+            seen.append(e["variable"])
+    return seen

@@ -277,7 +277,10 @@ def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False, prev: di
                 "time_s": time.time() - t0, "code": dict(code, diagnose=None), "capture_reused": reuse}
     rep = run_diagnose(cap, work / f"t{k:03d}_report", a, fit, ref)
     by = {c["name"]: c for c in rep["causes"]}
-    sig_unexpl = sorted((e for e in rep.get("unexplained", []) if e.get("significant")), key=lambda e: -e["effect"])
+    # the report's own order of the variables it found structure along (strongest held-out gain first); a report
+    # written before it kept that order: its significant entries by effect
+    sig_unexpl = [{"variable": v} for v in rep.get("unexplained_variables", [])] or sorted(
+        (e for e in rep.get("unexplained", []) if e.get("significant")), key=lambda e: -e["effect"])
     res = {"trial": k, "material": material, "hidden": hidden,
            "true_magnitude": {c: true_magnitude(c, v, cap) for c, v in hidden.items()},
            "verdict": rep["verdict"], "ranking": rep.get("ranking", []),
