@@ -39,8 +39,9 @@ from glossrig.core.extraction.cylinder import SurfaceSamples, sample_angles, sur
 from glossrig.core.calibration.markers import holder_marker_corners
 from glossrig.core.rig import load_rig
 
-from glossrig.core.diagnose.catalogue import (GAIN_THRESHOLD, HUBER_C, BrdfModel, CauseResult, _scalar_cause,
-                                              deviance, following_fit, one_value, weighted_solve)
+from glossrig.core.diagnose.catalogue import (GAIN_THRESHOLD, HUBER_C, BrdfModel, CauseResult, RobustScore,
+                                              _scalar_cause, deviance, following_fit, one_value, one_value_per_led,
+                                              weighted_solve)
 from glossrig.core.diagnose.error_model import huber_sigma, misfit_features
 
 FIT_ROWS = 6_000          # training rows used by the non-linear fits (held-out scoring uses all)
@@ -178,7 +179,7 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
 
     def score(x, train, test):
         pr, sig = predict(x, train)
-        return deviance((c["y"] - pr)[test], sig[test], c["sigma_model"][test])
+        return deviance((c["y"] - pr)[test], sig[test], m.sigma_reference()[test])
 
     def fit(train_idx):
         train = np.zeros(len(allrows), bool)
@@ -197,7 +198,8 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
             coef, _ = weighted_solve(X, y, sig0, 2)
             pr = X @ coef
             mis = m.misfit
-            sig = np.sqrt(mis["v0"][sub] + misfit_features(pr, coef[1] * L * F, coef[1] * dL * F) @ mis["k"])
+            rs = mis.get("rho_s", 1.0)                # the lobe's size stays the base's (BrdfModel.follow)
+            sig = np.sqrt(mis["v0"][sub] + misfit_features(pr, rs * L * F, rs * dL * F) @ mis["k"])
             r = y - pr
             return np.concatenate([r / huber_sigma(sig, r, HUBER_C), np.sqrt(np.log(sig ** 2 / v0[sub]) + 1.0)])
 
@@ -229,10 +231,12 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
         return least_squares(fun, x0, jac=jac, bounds=(lo, hi), x_scale=np.maximum(hi - lo, 1e-9) / 20,
                              max_nfev=30 * len(x0)).x
 
+    robust = RobustScore()
     for train, test in m.halves():
         x = fit(allrows[train])
         fits.append(x)
         e0, e1 = score(base, train, test), score(x, train, test)
+        robust.add(c["y"], predict(base, train)[0], predict(x, train)[0], test)
         for j, sc in enumerate(scales):
             prof[j] += score(base + sc * (x - base), train, test) * test.sum()
         base_res += e0 * test.sum()
@@ -246,7 +250,7 @@ def _vector_cause(geo: Geometry, name, doc, unpack, base, x0, lo, hi, magnitude,
     r = CauseResult(name, "brdf", doc, dict(params_of(xa), unit=unit, fold_estimates=[params_of(f) for f in fits]),
                     params_of(spread), ext_res / n_all, base_res / n_all, gains, len(x0), profile=profile,
                     magnitude=magnitude(xa), prediction=predict(xa, np.ones(len(allrows), bool))[0],
-                    fold_errors=fold_errors)
+                    fold_errors=fold_errors, robust=robust.result())
     e = np.asarray(profile["error"])
     if (e.max() - e.min()) / max(e.min(), 1e-12) < GAIN_THRESHOLD:
         r.identifiable = False
@@ -327,6 +331,6 @@ def geometry_causes(m: BrdfModel, log=None, only=GEOMETRY_CAUSES) -> list[CauseR
 
     if "sample_radius_error" in only:
         out.append(_scalar_cause(m, "sample_radius_error", doc, make_r, (-3.0, 3.0), "dr_mm", "mm", grid_n=13))
-        one_value(out[-1], out[-1].params["fold_estimates"], out[-1].params["dr_mm"], -3.0, 3.0, 0.0)
+        one_value_per_led(out[-1], m, make_r, (-3.0, 3.0), "dr_mm", 0.0)
         say(out[-1])
     return out
