@@ -330,7 +330,10 @@ def lobe_albedos(L, y, W, *, b_max: float = RHO_S_MAX, unseen_rule: bool = True)
     seen = W2 > 0
     if unseen_rule and b > 0 and seen.any() and b * np.max(np.abs(L[seen])) <= LOBE_UNSEEN * np.max(np.abs(y[seen])):
         a, b = max(np.pi * np.sum(W2 * y) / np.sum(W2), 0.0), 0.0
-        cost = zz - 2 * a * uz + a * a * uu
+    # The cost of the chosen albedos from the residuals themselves: the quadratic form of the sums
+    # (zz - 2 a uz + ...) cancels to ~eps zz, which for a tall lobe over small noise is ~1e-10 of
+    # the cost (the grid search, comparing thousands of lobes, keeps the sums).
+    cost = np.sum(W2 * (y - a / np.pi - b * L) ** 2) if np.isfinite(cost) else cost
     return float(a), float(b), float(cost)
 
 
