@@ -112,3 +112,19 @@ def test_deviance_is_chi2_at_the_base_and_charges_a_larger_sigma():
     # inflating sigma three-fold lowers the normalised residual nine-fold but costs log 9 per row
     assert deviance(res, big, sig) == pytest.approx(np.mean((res / big) ** 2) + np.log(9.0))
     assert deviance(res, big, sig) > deviance(res, sig, sig)
+
+
+def test_a_fit_on_a_bound_is_no_value_of_the_rig_unless_the_bound_is_no_effect():
+    """The bound rule of catalogue.one_value, which geometry's per-LED causes apply to their fit on all
+    rows: an LED offset at the +-15 mm end of its range is a fit bending to a departure it does not
+    describe; an emission exponent at its lower bound 0 is no effect (the null value) and passes."""
+    from glossrig.core.diagnose.catalogue import not_one_value, on_bound
+
+    lo, hi = np.full(6, -15.0), np.full(6, 15.0)
+    assert on_bound([2.8, 0.5, 0.7, 0.3, -1.3, -14.95], lo, hi, np.zeros(6))
+    assert not on_bound([2.8, 0.5, 0.7, 0.3, -1.3, -14.0], lo, hi, np.zeros(6))
+    assert not on_bound([0.0, 0.1, -0.1], [0.0, -0.15, -0.15], [400.0, 0.15, 0.15], np.zeros(3))
+    assert on_bound([4.4, 0.1, -0.1499], [0.0, -0.15, -0.15], [400.0, 0.15, 0.15], np.zeros(3))
+    r = CauseResult("led_position_error", "brdf", "", {}, {}, 0.5, 1.0, [0.5, 0.5], 24)
+    not_one_value(r, "an estimate sits on the bound")
+    assert r.identifiable is False and "not one value of the rig" in r.note

@@ -1250,12 +1250,9 @@ def one_value(r: CauseResult, estimates, pooled, lo, hi, null) -> None:
     lo, hi, null = (np.atleast_1d(np.asarray(x, float)) for x in (lo, hi, null))
     E = np.array([np.atleast_1d(np.asarray(e, float)) for e in estimates])
     span = np.where(np.isfinite(hi - lo), np.maximum(hi - lo, 1e-12), 1.0)      # unbounded: the parameter's unit
-    rail = np.vstack([E, np.atleast_1d(np.asarray(pooled, float))])
-    at_lo = (rail - lo < RAIL * span) & (np.abs(lo - null) > RAIL * span)
-    at_hi = (hi - rail < RAIL * span) & (np.abs(hi - null) > RAIL * span)
     why = None
-    if np.any(at_lo | at_hi):
-        why = "an estimate sits on the bound of the range its physics is searched over"
+    if on_bound(np.vstack([E, np.atleast_1d(np.asarray(pooled, float))]), lo, hi, null):
+        why = ON_BOUND
     elif len(E) >= 2:
         z = (E - null) / span
         spread = float(np.sqrt(np.mean(np.var(z, axis=0, ddof=1))))
@@ -1264,9 +1261,30 @@ def one_value(r: CauseResult, estimates, pooled, lo, hi, null) -> None:
             why = (f"the folds' estimates disagree (spread {spread:.3g} of the range against a mean departure "
                    f"from no effect of {size:.3g})")
     if why is not None:
-        r.identifiable = False
-        r.note = (r.note + "; " if r.note else "") + (
-            f"not one value of the rig: {why} - the cause bends to each fold's misfit")
+        not_one_value(r, why)
+
+
+#: why an estimate on a bound is no value of the rig (:func:`one_value`)
+ON_BOUND = "an estimate sits on the bound of the range its physics is searched over"
+
+
+def on_bound(x, lo, hi, null) -> bool:
+    """Whether any parameter of ``x`` (a vector, or rows of vectors) lies within RAIL of its search range
+    ``[lo, hi]`` from a bound that is not its ``null`` value (no effect): the fit wanted more than the
+    physics of the cause allows, i.e. it bends to a departure it does not describe (:func:`one_value`)."""
+    lo, hi, null = (np.atleast_1d(np.asarray(v, float)) for v in (lo, hi, null))
+    x = np.asarray(x, float)
+    span = np.where(np.isfinite(hi - lo), np.maximum(hi - lo, 1e-12), 1.0)
+    at_lo = (x - lo < RAIL * span) & (np.abs(lo - null) > RAIL * span)
+    at_hi = (hi - x < RAIL * span) & (np.abs(hi - null) > RAIL * span)
+    return bool(np.any(at_lo | at_hi))
+
+
+def not_one_value(r: CauseResult, why: str) -> None:
+    """Mark an instrument cause as no value of the rig (:func:`one_value`), in place, saying why."""
+    r.identifiable = False
+    r.note = (r.note + "; " if r.note else "") + (
+        f"not one value of the rig: {why} - the cause bends to each fold's misfit")
 
 
 def one_value_per_led(r: CauseResult, m: BrdfModel, make, bounds: tuple[float, float], pname: str,
