@@ -22,7 +22,7 @@ import pandas as pd
 
 from glossrig.core.capture import load_manifest
 from glossrig.core.errors import InputError
-from glossrig.core.extraction.extract import Measured, check_compatible, diffuse_normalize, measure_capture
+from glossrig.core.extraction.extract import Measured, check_compatible, diffuse_normalize, measure_capture, measure_pair
 from glossrig.core.rig import load_rig
 from glossrig.core.samples import LUMINANCE_WEIGHTS
 
@@ -96,11 +96,13 @@ def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progre
     from glossrig.core.extraction.extract import camera_arrays
 
     check_compatible(sample_dir, reference_dir, what="diagnose")
-    ms = measure_capture(sample_dir, cam, lamps, progress=progress, what="diagnose", store=store,
-                         unit_prefix="sample-")
-    mr = reference if reference is not None else measure_capture(reference_dir, cam, lamps, progress=progress,
-                                                                 name="REF_DIR", what="diagnose", store=store,
-                                                                 unit_prefix="reference-")
+    if reference is None:
+        # one pool for both, the reference only in the sample's units (the ones the division uses)
+        ms, mr = measure_pair(sample_dir, reference_dir, cam, lamps, progress=progress, what="diagnose", store=store)
+    else:
+        ms = measure_capture(sample_dir, cam, lamps, progress=progress, what="diagnose", store=store,
+                             unit_prefix="sample-")
+        mr = reference
     s = ms.table.copy()
     for c in "rgb":
         s[f"S_{c}"] = s[c]

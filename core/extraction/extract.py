@@ -494,18 +494,59 @@ def measure_capture(folder, cam: CameraCalibration, lamps: dict[int, np.ndarray]
     every usable core; 1: all in this process). Units are independent and concatenated in
     plan order, so the table is the same for any number; the store is read and written
     here, in the calling process."""
-    from tqdm import tqdm
-
     src = _open_source(folder, name, what, unit_prefix)
     order = [(0, rot, led) for rot, led in src.units()]
-    bar = tqdm(total=len(order), desc=f"extract {Path(folder).name}", unit="LED", disable=not progress_enabled(progress))
+    return _measure([src], order, cam, lamps, estimator, store, workers, progress, f"extract {Path(folder).name}",
+                    solve=[(0, rot) for rot in src.man.rotations()])[0]
+
+
+def measure_pair(sample_dir, reference_dir, cam: CameraCalibration, lamps: dict[int, np.ndarray] | None,
+                 estimator: str = "ml", progress: bool = False, what: str = "extract", store=None,
+                 workers: int | None = None) -> tuple[Measured, Measured]:
+    """A sample and its diffuse reference measured as :func:`measure_capture` measures each, in one
+    pool: the reference only in the sample's (rotation, LED) units - the ones eq. 4.78 divides by
+    (:func:`diffuse_normalize`); a reference unit of another rotation or LED is not read - and each
+    reference unit :data:`REFERENCE_LAG` sample units after its own (:func:`_paired_order`), so the
+    reference's geometry is solved beside the sample's units instead of after them (two
+    :func:`measure_capture` calls idle a worker through each geometry, and measured the reference's
+    other rotations for nothing: on a scale-0.25, 8-LED capture of one rotation against a reference of
+    two, diagnose's measurement took 30.3 s instead of 40.6 s, validation/diagnose/speed_benchmark.md).
+    The tables are those two calls would give, the reference's restricted to the sample's units;
+    the units are kept in ``store`` under the names ``sample-...`` and ``reference-...``
+    (:func:`unit_name`). A reference that lacks a unit of the sample stops here, before anything is
+    measured (:class:`InputError` naming the reference)."""
+    sources = [_open_source(sample_dir, "SAMPLE_DIR", what, "sample-"),
+               _open_source(reference_dir, "REF_DIR", what, "reference-")]
+    s_units = sources[0].units()
+    have = set(sources[1].units())
+    for rot, led in s_units:
+        if (rot, led) not in have:
+            raise InputError(f"the reference capture has no LED {led} at rotation {rot:g} deg",
+                             path=sources[1].man.path)
+    order = _paired_order(s_units, REFERENCE_LAG)
+    ms, mr = _measure(sources, order, cam, lamps, estimator, store, workers, progress,
+                      f"extract {sources[0].man.folder.name} + {sources[1].man.folder.name}",
+                      solve=[(0, rot) for rot in sources[0].man.rotations()])
+    return ms, mr
+
+
+def _measure(sources: list[_Source], order, cam: CameraCalibration, lamps, estimator: str, store,
+             workers: int | None, progress: bool, desc: str, solve) -> list[Measured]:
+    """The units ``order`` of ``sources`` measured in one pool (:func:`_measured_units`): one
+    :class:`Measured` per source, its units concatenated in its plan order (:func:`capture_units`)
+    whatever the order they were measured in, its geometries those solved for it."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(order), desc=desc, unit="LED", disable=not progress_enabled(progress))
     geoms: dict = {}
     with _pool(workers, len(order)) as pool:
-        frames = list(_measured_units(pool, [src], order, cam, lamps, estimator, store, geoms, bar,
-                                      solve=[(0, rot) for rot in src.man.rotations()]))
+        tables = list(_measured_units(pool, sources, order, cam, lamps, estimator, store, geoms, bar, solve=solve))
     bar.close()
-    return Measured(pd.concat(frames, ignore_index=True), str(src.man.rig_path()),
-                    {rot: g for (_, rot), g in geoms.items()})
+    got = {job: df for job, df in zip(order, tables)}
+    return [Measured(pd.concat([got[(i, rot, led)] for rot, led in src.units() if (i, rot, led) in got],
+                               ignore_index=True),
+                     str(src.man.rig_path()), {rot: g for (j, rot), g in geoms.items() if j == i})
+            for i, src in enumerate(sources)]
 
 
 def _dirs(df: pd.DataFrame) -> np.ndarray:

@@ -127,6 +127,20 @@ def stage_split(lines: list, wall: float) -> list[tuple[str, float]]:
     return out
 
 
+def describe_capture(folder) -> str:
+    """A capture's material, LEDs, rotations and scale, read from its manifest (the benchmark may be given
+    captures other than its own)."""
+    from glossrig.core.capture import load_manifest
+
+    man = load_manifest(folder)
+    seq = man.select("sequence")
+    leds = sorted({led for im in seq for led in im.leds})
+    scale = man.meta.get("scale", "?") if isinstance(man.meta, dict) else "?"
+    return (f"{man.material}, {len(leds)} LEDs ({','.join(map(str, leds))}), rotations "
+            f"{','.join(f'{r:g}' for r in man.rotations())}, scale {scale}, "
+            f"{len({im.exposure_s for im in seq})} exposures")
+
+
 def write_md(path: Path, res: dict, cmd: str) -> None:
     runs = res["runs"]
     new = [r for r in runs if r["code"] == "new"]
@@ -134,8 +148,9 @@ def write_md(path: Path, res: dict, cmd: str) -> None:
     mean = lambda rs, k: sum(r[k] for r in rs) / len(rs)
     lines = ["# `glossrig diagnose` speed (issue 14)", "",
              "Written by `validation/diagnose/speed_benchmark.py`; command:", "", f"    {cmd}", "",
-             f"Capture: `{res['captures']['sample']}` ({MATERIAL}, 8 middle-row LEDs, scale {SCALE}, rotation 0, "
-             f"18 exposures) against `{res['captures']['reference']}` (lambert:0.8), calibrated camera and lamps. "
+             f"Capture: `{res['captures']['sample']}` ({describe_capture(res['captures']['sample'])}) against "
+             f"`{res['captures']['reference']}` ({describe_capture(res['captures']['reference'])}), calibrated "
+             "camera and lamps. "
              f"Machine: {os.cpu_count()} cores; load average (1 min) around the runs: "
              + ", ".join(f"{r['load_before']:.1f}" for r in runs) + ". Baseline: the code of commit "
              f"`{res['baseline_commit']}` (core/ and cli/, git archive).", "",
