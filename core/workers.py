@@ -135,6 +135,37 @@ def process_pool(workers: int) -> WorkerPool:
     return WorkerPool(workers, mp_context=multiprocessing.get_context("spawn"), initializer=single_threaded)
 
 
+class InWorker:
+    """``fn(*args, **kwargs)`` in one worker of :func:`process_pool`, started at construction,
+    beside whatever the calling process does next (diagnose's frame-space causes, and its
+    instrument causes on the Ward lobe, each beside the BRDF-space work of the caller: on a
+    2-core machine the two then share the cores instead of taking turns). :meth:`result`
+    waits for it and shuts the worker down; an interruption while waiting, or leaving the
+    ``with`` block on an error, stops the worker instead of waiting for it."""
+
+    def __init__(self, fn: Callable[..., Any], *args: Any, **kwargs: Any):
+        self._pool = process_pool(1)
+        self._future = self._pool.submit(fn, *args, **kwargs)
+
+    def result(self) -> Any:
+        try:
+            out = self._future.result()
+        except BaseException:
+            self._pool.terminate()
+            raise
+        self._pool.shutdown()
+        return out
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:          # an exception leaving the block goes on
+        if exc[0] is not None:
+            self._pool.terminate()
+        else:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+
 def ordered_results(pool: WorkerPool | None, fn: Callable[..., Any], jobs: Iterable[tuple],
                     ahead: int = 1, window: int | None = None) -> Iterator[Any]:
     """``fn(*job)`` for every job, yielded in job order. With a ``pool`` at most its

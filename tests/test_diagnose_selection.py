@@ -128,3 +128,22 @@ def test_a_fit_on_a_bound_is_no_value_of_the_rig_unless_the_bound_is_no_effect()
     r = CauseResult("led_position_error", "brdf", "", {}, {}, 0.5, 1.0, [0.5, 0.5], 24)
     not_one_value(r, "an estimate sits on the bound")
     assert r.identifiable is False and "not one value of the rig" in r.note
+
+
+def test_the_ward_lobe_pass_in_a_worker_equals_the_pass_in_this_process():
+    """diagnose runs the instrument causes on the Ward lobe in a worker process beside those on top of the
+    material (catalogue._brdf_causes, for speed): the model travels to the worker by pickling and the worker
+    runs with one BLAS thread as this process does, so its results are this process's, bit for bit."""
+    from glossrig.core.diagnose.catalogue import _ward_lobe_pass
+    from glossrig.core.workers import InWorker
+
+    data, ward = synthetic_brdf(62, None, 0.0)
+    m = BrdfModel.build(data, ward)
+    here = _ward_lobe_pass(m)
+    with InWorker(_ward_lobe_pass, m) as w:
+        there = w.result()
+    assert [r.name for r in here] == [r.name for r in there] and len(here) == 6
+    for a, b in zip(here, there):
+        assert (a.error, a.base_error, a.fold_gains, a.significant, a.params.keys()) == \
+               (b.error, b.base_error, b.fold_gains, b.significant, b.params.keys()), a.name
+        assert np.array_equal(a.prediction, b.prediction), a.name

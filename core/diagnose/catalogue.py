@@ -75,7 +75,7 @@ from scipy.optimize import minimize_scalar
 
 from glossrig.core.models.angles import ANGLE_COLUMNS
 from glossrig.core.models.ward import WardParams, ward_from_angles
-from glossrig.core.workers import one_blas_thread
+from glossrig.core.workers import InWorker, one_blas_thread
 
 from glossrig.core.diagnose.channels import fill_missing_channels
 from glossrig.core.diagnose.data import BrdfData
@@ -725,22 +725,41 @@ def _brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
     mats.append(flexible_cause(m))
     done(mats[-1:])
 
-    say(f"  material models done; the instrument causes next, on the fit's Ward lobe ({took()})")
-    alone = instrument_causes(m, m, done)
-    alone = alone + geometry_causes(m, log=lambda r: done([r]))
     mi, mrot = instrument_bases(m, mats)
-    m.instrument = mi
     if mi is m and mrot is m:        # no material to fit them on top of: the causes are selected among themselves
+        say(f"  material models done; the instrument causes next, on the fit's Ward lobe ({took()})")
+        alone = instrument_causes(m, m, done)
+        alone = alone + geometry_causes(m, log=lambda r: done([r]))
+        m.instrument = mi
         return explain_material(m, alone, alone, mats, m, m) + mats
-    say(f"  instrument causes done on the Ward lobe; again on top of {mi.material_name} ({took()})")
-    on_top = instrument_causes(mi, mrot, done, rotation=None if mrot is m else True)
-    on_top = on_top + geometry_causes(mi, log=lambda r: done([r]))
+    # the two passes of the instrument causes - on the fit's Ward lobe and on top of the material - are
+    # independent: the first runs in a worker process beside the second (speed: each took ~40 s on a
+    # scale-0.25 8-LED satin capture, the BRDF stage 85-89 s in turn and 60-65 s side by side,
+    # validation/diagnose/speed_benchmark.md); the same report as one after the other
+    say(f"  material models done; the instrument causes next, on the fit's Ward lobe (in a worker process) and "
+        f"on top of {mi.material_name} ({took()})")
+    with InWorker(_ward_lobe_pass, m) as ward_pass:
+        on_top = instrument_causes(mi, mrot, done, rotation=None if mrot is m else True)
+        on_top = on_top + geometry_causes(mi, log=lambda r: done([r]))
+        say(f"  instrument causes done on top of {mi.material_name}; waiting for those on the Ward lobe ({took()})")
+        alone = ward_pass.result()
+    m.instrument = mi
+    say(f"  instrument causes done on the Ward lobe ({took()})")
     if mrot is m:                    # the rotation's base is the Ward lobe itself: its fit alone is the one
         on_top.insert(2, alone[2])
     for r in on_top:
         if (mrot if r.name == "sample_rotation_offset" else mi) is not m:
             r.fitted_on = "material"
     return explain_material(m, alone, on_top, mats, mi, mrot) + mats
+
+
+def _ward_lobe_pass(m: BrdfModel) -> list[CauseResult]:
+    """The instrument causes fitted on the fit's Ward lobe (``alone`` of :func:`_brdf_causes`), as a worker
+    process runs them."""
+    from glossrig.core.diagnose.geometry import geometry_causes
+
+    with one_blas_thread():
+        return instrument_causes(m, m, lambda rs: None) + geometry_causes(m)
 
 
 def explain_material(m: BrdfModel, alone: list[CauseResult], on_top: list[CauseResult],

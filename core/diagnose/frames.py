@@ -33,7 +33,7 @@ from scipy.ndimage import median_filter
 from scipy.optimize import minimize_scalar
 
 from glossrig.core.diagnose.catalogue import MAX_PIXELS, CauseResult, chi2
-from glossrig.core.workers import one_blas_thread
+from glossrig.core.workers import InWorker, one_blas_thread
 from glossrig.core.diagnose.data import FrameData
 
 CLIP_MARGIN = 0.95          # a DN above CLIP_MARGIN * the effective white is treated as clipped
@@ -564,8 +564,8 @@ def frame_stage(sample_dir, measured, log=None, max_pixels: int | None = None):
     return frame_causes(fs, log), frame_structure(fs), dark_veil(fd, measured.geometry)
 
 
-class FrameStage:
-    """:func:`frame_stage` run in one worker process (:func:`glossrig.core.workers.process_pool`),
+class FrameStage(InWorker):
+    """:func:`frame_stage` run in one worker process (:class:`glossrig.core.workers.InWorker`),
     started at construction, beside the BRDF-space causes in the calling process: on a 2-core
     machine the two halves of the diagnosis then share the cores instead of taking turns (the
     frame stage reads its raws and needs only the crops of the measurement, not its tables).
@@ -574,31 +574,7 @@ class FrameStage:
     def __init__(self, sample_dir, measured):
         from types import SimpleNamespace
 
-        from glossrig.core.workers import process_pool
-
-        self._pool = process_pool(1)
         # the pixel budget is this process's (a caller may have lowered MAX_PIXELS; the worker imports
         # the module afresh and would not see it)
-        self._future = self._pool.submit(frame_stage, str(sample_dir), SimpleNamespace(geometry=measured.geometry),
-                                         max_pixels=MAX_PIXELS)
-
-    def result(self):
-        """(causes, structure, veil) of :func:`frame_stage`; an interruption while waiting stops the worker."""
-        try:
-            out = self._future.result()
-        except BaseException:
-            self._pool.terminate()
-            raise
-        self._pool.shutdown()
-        return out
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        # on an error in the caller (the BRDF-space causes) the worker is stopped, not waited for
-        if exc[0] is not None:
-            self._pool.terminate()
-        else:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-        return False
+        super().__init__(frame_stage, str(sample_dir), SimpleNamespace(geometry=measured.geometry),
+                         max_pixels=MAX_PIXELS)

@@ -510,7 +510,7 @@ def measure_pair(sample_dir, reference_dir, cam: CameraCalibration, lamps: dict[
     reference's geometry is solved beside the sample's units instead of after them (two
     :func:`measure_capture` calls idle a worker through each geometry, and measured the reference's
     other rotations for nothing: on a scale-0.25, 8-LED capture of one rotation against a reference of
-    two, diagnose's measurement took 30.3 s instead of 40.6 s, validation/diagnose/speed_benchmark.md).
+    two, diagnose's measurement took 25-32 s instead of 43-48 s, validation/diagnose/speed_benchmark.md).
     The tables are those two calls would give, the reference's restricted to the sample's units;
     the units are kept in ``store`` under the names ``sample-...`` and ``reference-...``
     (:func:`unit_name`). A reference that lacks a unit of the sample stops here, before anything is
