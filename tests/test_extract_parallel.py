@@ -98,11 +98,12 @@ def test_measure_capture_in_workers_equals_in_process(caps):
 
 
 @pytest.mark.mitsuba
-def test_a_pair_measured_in_one_pool_equals_each_capture_measured_alone(caps, monkeypatch):
+def test_a_pair_measured_in_one_pool_equals_each_capture_measured_alone(caps):
     """diagnose's measurement (extract.measure_pair): the sample's and the reference's tables are
     measure_capture's, the reference read only in the sample's units; a reference without one of
-    the sample's units stops before anything is measured, naming the reference."""
+    the sample's units stops (extract.check_compatible) before anything is measured, naming the reference."""
     import glossrig.core.extraction.extract as ex
+    from glossrig.core.capture import load_manifest
 
     sample, ref, cam, lamps = _inputs(caps)
     ms, mr = ex.measure_pair(sample, ref, cam, lamps, workers=2)
@@ -111,22 +112,18 @@ def test_a_pair_measured_in_one_pool_equals_each_capture_measured_alone(caps, mo
     pd.testing.assert_frame_equal(mr.table, alone_r.table, check_exact=True)
     assert list(ms.geometry) == list(mr.geometry) == [0.0]
 
-    real_units = ex.capture_units
-
     def without_led_10(folder):
-        def units(man):
-            return [u for u in real_units(man) if not (man.folder == Path(folder) and u[1] == 10)]
-        return units
+        man = load_manifest(folder)
+        man.images = [im for im in man.images if not (im.role == "sequence" and im.leds[0] == 10)]
+        return man
 
-    monkeypatch.setattr(ex, "capture_units", without_led_10(sample))     # a sample of LED 9 only
-    ms, mr = ex.measure_pair(sample, ref, cam, lamps, workers=2)
+    ms, mr = ex.measure_pair(without_led_10(sample), ref, cam, lamps, workers=2)      # a sample of LED 9 only
     assert set(ms.table.led) == set(mr.table.led) == {9}
     pd.testing.assert_frame_equal(mr.table, alone_r.table[alone_r.table.led == 9].reset_index(drop=True),
                                   check_exact=True)
 
-    monkeypatch.setattr(ex, "capture_units", without_led_10(ref))        # a reference that lacks LED 10
-    with pytest.raises(InputError, match="reference capture has no LED 10") as e:
-        ex.measure_pair(sample, ref, cam, lamps, workers=2)
+    with pytest.raises(InputError, match="reference lacks sequences the sample has: LED 10 at 0 deg") as e:
+        ex.measure_pair(sample, without_led_10(ref), cam, lamps, workers=2)        # a reference that lacks LED 10
     assert Path(str(ref)).name in str(e.value)
 
 

@@ -127,9 +127,8 @@ def run(args) -> int:
     if not args.no_progress and not progress_enabled():
         # no bar on a pipe or a log file: one line per measured LED instead of minutes of silence
         # the reference is measured in the sample's units only (extract.measure_pair)
-        sample_units = capture_units(load_manifest(args.sample))
-        units = {"sample": sample_units,
-                 "reference": [u for u in capture_units(load_manifest(args.reference)) if u in set(sample_units)]}
+        pair = capture_units(load_manifest(args.sample))
+        units = {"sample": pair, "reference": pair}
         say(f"measuring the sample ({len(units['sample'])} LED x rotation units) and the reference "
             f"({len(units['reference'])})")
         store_cls = logged_store(WorkStore, say, elapsed, units)

@@ -198,7 +198,7 @@ class CauseResult:
     #: instrument cause with them (:func:`explain_material`)
     fold_errors: list | None = None
     #: the model a BRDF-space instrument cause was fitted on: "ward" (the fit's Ward lobe) or "material" (the
-    #: best material model, :func:`instrument_bases`; ``BrdfModel.instrument``)
+    #: best material model, :func:`instrument_bases`; :func:`model_of` gives that model)
     fitted_on: str = "ward"
 
     @property
@@ -336,9 +336,6 @@ class BrdfModel:
     _flex_cache: dict = field(default_factory=dict, repr=False)   # flexible columns per training set
     #: the calibrated error model's coefficients and noise variance (:meth:`noise`; :meth:`follow` evaluates them)
     misfit: dict = field(default_factory=dict, repr=False)
-    #: the conditioned model the BRDF-space instrument causes were first fitted on (:func:`instrument_bases`;
-    #: set by :func:`brdf_causes`, for the record: :func:`model_of` gives the model a cause was fitted on)
-    instrument: BrdfModel | None = field(default=None, repr=False)
 
     @classmethod
     def build(cls, data: BrdfData, fit: WardParams, seed: int = 0) -> BrdfModel:
@@ -730,10 +727,9 @@ def _brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
         say(f"  material models done; the instrument causes next, on the fit's Ward lobe ({took()})")
         alone = instrument_causes(m, m, done)
         alone = alone + geometry_causes(m, log=lambda r: done([r]))
-        m.instrument = mi
         return explain_material(m, alone, alone, mats, m, m) + mats
     # the two passes of the instrument causes - on the fit's Ward lobe and on top of the material - are
-    # independent: the first runs in a worker process beside the second (speed: each took ~40 s on a
+    # independent: the first runs in a worker process beside the second (speed: 30-40 s each on a
     # scale-0.25 8-LED satin capture, the BRDF stage 85-89 s in turn and 60-65 s side by side,
     # validation/diagnose/speed_benchmark.md); the same report as one after the other
     say(f"  material models done; the instrument causes next, on the fit's Ward lobe (in a worker process) and "
@@ -743,7 +739,6 @@ def _brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
         on_top = on_top + geometry_causes(mi, log=lambda r: done([r]))
         say(f"  instrument causes done on top of {mi.material_name}; waiting for those on the Ward lobe ({took()})")
         alone = ward_pass.result()
-    m.instrument = mi
     say(f"  instrument causes done on the Ward lobe ({took()})")
     if mrot is m:                    # the rotation's base is the Ward lobe itself: its fit alone is the one
         on_top.insert(2, alone[2])

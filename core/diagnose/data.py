@@ -95,11 +95,12 @@ def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progre
     (``reference_source`` names where the BRDF came from)."""
     from glossrig.core.extraction.extract import camera_arrays
 
-    check_compatible(sample_dir, reference_dir, what="diagnose")
     if reference is None:
-        # one pool for both, the reference only in the sample's units (the ones the division uses)
+        # one pool for both, the reference only in the sample's units (the ones the division uses); the
+        # captures are checked (check_compatible) before anything is measured
         ms, mr = measure_pair(sample_dir, reference_dir, cam, lamps, progress=progress, what="diagnose", store=store)
     else:
+        check_compatible(sample_dir, reference_dir, what="diagnose")
         ms = measure_capture(sample_dir, cam, lamps, progress=progress, what="diagnose", store=store,
                              unit_prefix="sample-")
         mr = reference

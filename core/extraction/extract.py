@@ -513,21 +513,15 @@ def measure_pair(sample_dir, reference_dir, cam: CameraCalibration, lamps: dict[
     two, diagnose's measurement took 25-32 s instead of 43-48 s, validation/diagnose/speed_benchmark.md).
     The tables are those two calls would give, the reference's restricted to the sample's units;
     the units are kept in ``store`` under the names ``sample-...`` and ``reference-...``
-    (:func:`unit_name`). A reference that lacks a unit of the sample stops here, before anything is
-    measured (:class:`InputError` naming the reference)."""
-    sources = [_open_source(sample_dir, "SAMPLE_DIR", what, "sample-"),
-               _open_source(reference_dir, "REF_DIR", what, "reference-")]
-    s_units = sources[0].units()
-    have = set(sources[1].units())
-    for rot, led in s_units:
-        if (rot, led) not in have:
-            raise InputError(f"the reference capture has no LED {led} at rotation {rot:g} deg",
-                             path=sources[1].man.path)
-    order = _paired_order(s_units, REFERENCE_LAG)
-    ms, mr = _measure(sources, order, cam, lamps, estimator, store, workers, progress,
-                      f"extract {sources[0].man.folder.name} + {sources[1].man.folder.name}",
-                      solve=[(0, rot) for rot in sources[0].man.rotations()])
-    return ms, mr
+    (:func:`unit_name`). Captures :func:`check_compatible` refuses (a reference of another rig, or one
+    that lacks a unit of the sample) stop here, before anything is measured."""
+    ms, mr = _manifest(sample_dir), _manifest(reference_dir)
+    check_compatible(ms, mr, what)
+    sources = [_open_source(ms, "SAMPLE_DIR", what, "sample-"), _open_source(mr, "REF_DIR", what, "reference-")]
+    order = _paired_order(sources[0].units(), REFERENCE_LAG)
+    a, b = _measure(sources, order, cam, lamps, estimator, store, workers, progress,
+                    f"extract {ms.folder.name} + {mr.folder.name}", solve=[(0, rot) for rot in ms.rotations()])
+    return a, b
 
 
 def _measure(sources: list[_Source], order, cam: CameraCalibration, lamps, estimator: str, store,

@@ -135,9 +135,8 @@ def describe_capture(folder) -> str:
     man = load_manifest(folder)
     seq = man.select("sequence")
     leds = sorted({led for im in seq for led in im.leds})
-    scale = man.meta.get("scale", "?") if isinstance(man.meta, dict) else "?"
     return (f"{man.material}, {len(leds)} LEDs ({','.join(map(str, leds))}), rotations "
-            f"{','.join(f'{r:g}' for r in man.rotations())}, scale {scale}, "
+            f"{','.join(f'{r:g}' for r in man.rotations())}, scale {man.meta.get('scale', '?')}, "
             f"{len({im.exposure_s for im in seq})} exposures")
 
 
