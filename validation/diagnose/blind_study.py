@@ -1,7 +1,10 @@
 """Blind study of glossrig diagnose (issues 7 and 14): hidden causes at seeded random magnitudes,
 on the twin's Ward material and on two real measured materials, one or two causes at a time.
 
-    nice -n 5 python -m validation.diagnose.blind_study --work /tmp/blind --trials 60
+    nice -n 5 python -m validation.diagnose.blind_study --work WORK --trials 60
+
+WORK is a folder that outlives the run (the study resumes from it; one LED set per folder); a
+folder in /tmp is lost with the machine.
 
 Materials (MATERIALS): ``sample_2_6`` (Table 9.1, the twin's Ward model) and two real RGL
 measurements of ../shared/data/rgl rendered by Mitsuba's ``measured`` plugin
@@ -400,7 +403,7 @@ def summarise(trials: list[dict], work: Path | None = None) -> str:
     L = ["# diagnose blind study", "",
          "Regenerate everything - calibration, per-material null captures and fits, trials, independent null "
          "captures, this file (resumable):", "",
-         f"    nice -n 5 python -m validation.diagnose.blind_study --work /tmp/blind --trials {len(trials)}"
+         f"    nice -n 5 python -m validation.diagnose.blind_study --work WORK --trials {len(trials)}"
          + ("" if LEDS == (6, 9) else f" --leds {','.join(map(str, LEDS))}"), "",
          f"Set-up: materials {', '.join(MATERIALS)} ({', '.join(WARD_MATERIALS)} is the twin's Ward model, the "
          "others real RGL measurements) on the thesis rig, "
