@@ -244,7 +244,7 @@ def test_rewrite_refuses_unknown_effect(tmp_path):
     from glossrig.twin.rewrite_raw import rewrite_capture
 
     with pytest.raises(InputError, match="can only rewrite"):
-        rewrite_capture(tmp_path, tmp_path / "x", "vignetting", 0.1)
+        rewrite_capture(tmp_path, tmp_path / "x", "stray_light", 0.1)
 
 
 # ----------------------------------------------------------------- end to end (slow)

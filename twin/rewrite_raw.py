@@ -16,6 +16,11 @@ manifest's checksums are updated. The stated black level is left unchanged.
   beyond the middle; on the thesis rig the cylinder axis runs along the image's x axis, so this
   is a step half-way along the axis: a smudge or crease of the wrapped sample). No cause of
   diagnose's catalogue models it: diagnose must call it "unexplained", along the axis (issue 14).
+* ``vignetting=k``: the signal above black times ``1 - k r^2 / r_corner^2``, r from the image's
+  centre (the lens's optical centre is not in the raw file; the rig's cameras have it at the centre
+  to within a few pixels) - as the twin's lens fall-off (:mod:`glossrig.twin.effects`), applied to the
+  whole frame: the sample, the holder and the marker's white patch alike (saturated pixels stay
+  saturated).
 """
 from __future__ import annotations
 
@@ -28,7 +33,8 @@ import numpy as np
 from glossrig.core.capture import load_manifest
 from glossrig.core.errors import InputError
 
-REWRITABLE = ("black_level_offset", "sensor_nonlinearity", "axis_step", "shutter_error", "channel_response")
+REWRITABLE = ("black_level_offset", "sensor_nonlinearity", "axis_step", "shutter_error", "channel_response",
+              "vignetting")
 CFA_NAMES = {0: "R", 1: "G", 2: "B"}
 
 
@@ -54,6 +60,13 @@ def rewrite_capture(src, dst, effect: str, value: float) -> Path:
             x = fr.origin[0] + np.arange(dn.shape[1])[None, :]
             step = np.where(x >= fr.full_size[0] // 2, 1.0 + value, 1.0)
             dn = np.where(dn >= fr.white, dn, black + (dn - black) * step)
+        elif effect == "vignetting":
+            w, h = fr.full_size
+            cx, cy = (w - 1) / 2, (h - 1) / 2
+            x = fr.origin[0] + np.arange(dn.shape[1])[None, :] - cx
+            y = fr.origin[1] + np.arange(dn.shape[0])[:, None] - cy
+            fall = 1.0 - value * (x ** 2 + y ** 2) / (cx ** 2 + cy ** 2)
+            dn = np.where(dn >= fr.white, dn, black + (dn - black) * fall)
         elif effect == "shutter_error":
             x = dn - black
             dn = np.where(dn >= fr.white, dn, black + x * (im.exposure_s + value) / im.exposure_s)

@@ -679,6 +679,36 @@ def vignetting_factor(u, v, size, pp):
     return ((u - cx) ** 2 + (v - cy) ** 2) / rc2
 
 
+def fixed_term_test(m: BrdfModel, basis, factor=None, offset=None) -> tuple[float, float, list[float], np.ndarray]:
+    """The BRDF model with an instrument term whose size was measured outside these rows held fixed - a
+    ``factor`` on every row or an ``offset`` (:meth:`BrdfModel.solve_linear`) - against the model without
+    it, ``basis``'s coefficients (and any flexible columns) re-solved on all rows for each. Nothing of the
+    term is fitted to the rows, so they are all scored: (base error, error, the relative gain on each
+    LED's rows, prediction). The frames' stray-light veil (:mod:`.stray_light`) and the white patch's
+    vignetting (:mod:`.vignetting_patch`) are tested so."""
+    c = m.cols
+    allr = np.ones(len(c["y"]), bool)
+    _, pb, _ = m.solve_linear(basis, allr)
+    _, pv, _ = m.solve_linear(basis, allr, factor=factor, offset=offset)
+    r0, r1 = (c["y"] - pb) / c["sigma"], (c["y"] - pv) / c["sigma"]
+    per_led = []
+    for led in np.unique(c["led"]):
+        k = c["led"] == led
+        e0, e1 = float(np.mean(r0[k] ** 2)), float(np.mean(r1[k] ** 2))
+        per_led.append((e0 - e1) / e0 if e0 > 0 else 0.0)
+    return float(np.mean(r0 ** 2)), float(np.mean(r1 ** 2)), per_led, pv
+
+
+def vignetting_q(m: BrdfModel) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`vignetting_factor` at every row's block centre and at its rotation's white-patch centre: a
+    vignetted sample capture carries ``(1 - k q) / (1 - k q_patch)`` on every value (the patch normalisation)."""
+    c, d = m.cols, m.data
+    q = vignetting_factor(c["u"] + 1.0, c["v"] + 1.0, d.image_size, d.principal_point)
+    qp = np.array([vignetting_factor(d.patch_uv[r][0], d.patch_uv[r][1], d.image_size, d.principal_point)
+                   for r in c["rotation"]])
+    return q, qp
+
+
 def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
     """Every BRDF-space cause, fitted and scored; ``log`` (callable(str)) gets one line per cause
     (per group of the material models) as it finishes (progress). Runs with one BLAS thread
@@ -1141,12 +1171,13 @@ def instrument_causes(m: BrdfModel, mrot: BrdfModel, done, rotation=True, only=L
 
     if "vignetting" in only:
         # ---- vignetting: multiplicative, scalar k
-        q = vignetting_factor(c["u"] + 1.0, c["v"] + 1.0, d.image_size, d.principal_point)
-        qp = np.array([vignetting_factor(*d.patch_uv[r], d.image_size, d.principal_point) for r in c["rotation"]])
+        q, qp = vignetting_q(m)
         doc = ("Lens vignetting (cos^4 law and the aperture): irradiance at the sensor falls as 1 - k (r/r_corner)^2 "
                "with the distance r from the principal point. The sample and the white patch sit at different r, so "
                "the patch normalisation leaves (1 - k q) / (1 - k q_patch) on every value when the sample capture "
-               "is vignetted and the reference is not; it grows with the distance from the optical centre.")
+               "is vignetted and the reference is not; it grows with the distance from the optical centre. The "
+               "white patch, the same surface in both captures, measures k without the material "
+               "(glossrig.core.diagnose.vignetting_patch).")
         make_v = lambda k: ([one, c["L"]], (1 - k * q) / (1 - k * qp))       # noqa: E731
         r = _scalar_cause(m, "vignetting", doc, make_v, (-0.5, 0.9), "k", "relative fall-off at the corner")
         one_value_per_led(r, m, make_v, (-0.5, 0.9), "k", 0.0)

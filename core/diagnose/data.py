@@ -42,6 +42,9 @@ class BrdfData:
     camera: tuple | None = None   # (K, distortion) of the camera calibration
     #: the calibration with the reference's own BRDF applied to ``table`` (:func:`renormalise_table`); None: not applied
     reference_calibration: dict | None = None
+    #: rotation -> RotationGeometry of the reference capture (its own marker detection): the white patch's
+    #: pixels there (:mod:`glossrig.core.diagnose.vignetting_patch`); None: not known
+    reference_geometry: dict | None = None
 
 
 @dataclass
@@ -134,7 +137,7 @@ def load_brdf(sample_dir, reference_dir, cam, lamps, albedo: float = 0.8, progre
         ii, jj = np.nonzero(g.patch_mask)
         patch_uv[rot] = (g.crop[0] + float(jj.mean()), g.crop[1] + float(ii.mean()))
     return BrdfData(t, ms, albedo, tuple(fr.full_size), (cam.cx, cam.cy), patch_uv, dict(lamps),
-                    camera=camera_arrays(cam), reference_calibration=cal)
+                    camera=camera_arrays(cam), reference_calibration=cal, reference_geometry=mr.geometry)
 
 
 def renormalise_table(t: pd.DataFrame, reference_brdf, albedo: float, source: str | None = None

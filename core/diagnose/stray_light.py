@@ -48,7 +48,7 @@ import math
 
 import numpy as np
 
-from glossrig.core.diagnose.catalogue import CauseResult, chi2, stray_extra
+from glossrig.core.diagnose.catalogue import CauseResult, chi2, fixed_term_test, stray_extra
 from glossrig.core.diagnose.data import LUMA, FrameData
 
 DARK_QUANTILE = 0.01     # the dark pixels' reference level: this quantile of a colour's rates in the crop
@@ -227,16 +227,7 @@ def fixed_veil_test(m, s: float) -> tuple[float, float, list, np.ndarray, list]:
         _, p1, _ = m.solve_linear(basis, train, offset=off)
         e0, e1 = chi2((c["y"] - p0)[test], c["sigma"][test]), chi2((c["y"] - p1)[test], c["sigma"][test])
         held.append((e0 - e1) / e0)
-    allr = np.ones(len(c["y"]), bool)
-    _, pb, _ = m.solve_linear(basis, allr)
-    _, pv, _ = m.solve_linear(basis, allr, offset=off)
-    r0, r1 = (c["y"] - pb) / c["sigma"], (c["y"] - pv) / c["sigma"]
-    per_led = []
-    for led in np.unique(c["led"]):
-        k = c["led"] == led
-        e0, e1 = float(np.mean(r0[k] ** 2)), float(np.mean(r1[k] ** 2))
-        per_led.append((e0 - e1) / e0)
-    return float(np.mean(r0 ** 2)), float(np.mean(r1 ** 2)), per_led, pv, held
+    return (*fixed_term_test(m, basis, offset=off), held)
 
 
 def apply_frame_evidence(m, causes: list[CauseResult], ev: dict | None) -> None:

@@ -138,16 +138,12 @@ class LedValues(NamedTuple):
     exposure_to_fix: np.ndarray
 
 
-def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
-               estimator: str = "ml") -> LedValues:
-    """Patch-normalised HDR values (N_blocks, 3), their variances and per-channel
-    validity for one LED (thesis eq. 4.31-4.50 through :mod:`glossrig.core.radiometry.hdr`
-    and :mod:`glossrig.core.radiometry.patch`)."""
-    seq = led_sequence(man, geom.rotation, led)
-    if not seq:
-        raise InputError(f"no sequence for LED {led} at rotation {geom.rotation:g} deg", path=man.path)
+def led_rate(man: Manifest, rig: Rig, seq: list, crop: tuple[int, int, int, int], estimator: str = "ml"):
+    """One LED's exposure sequence ``seq`` (manifest entries) over ``crop`` (x0, y0, x1, y1) combined
+    into an HDR rate mosaic (thesis eq. 4.31-4.44, :mod:`glossrig.core.radiometry.hdr`): (rate, variance,
+    status, cfa, ends) - ``ends`` what :func:`glossrig.core.radiometry.hdr.exposure_to_fix` reads."""
     # one exposure's frames at a time, read (checksums checked) as they are combined
-    stack = hdrmod.stream_stack(lambda i: man.read_raw(seq[i], crop=geom.crop), [im.exposure_s for im in seq],
+    stack = hdrmod.stream_stack(lambda i: man.read_raw(seq[i], crop=crop), [im.exposure_s for im in seq],
                                 [str(man.folder / im.file) for im in seq], [im.repeat for im in seq])
     cfa = stack.cfa
     release_memory()          # the frames' pages, freed, back to the system before the HDR step
@@ -169,6 +165,18 @@ def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
     else:
         raise InputError(f"HDR estimator must be 'ml' or 'thesis', got {estimator!r}")
     del stack
+    return rate, var, status, cfa, ends
+
+
+def led_values(man: Manifest, rig: Rig, geom: RotationGeometry, led: int,
+               estimator: str = "ml") -> LedValues:
+    """Patch-normalised HDR values (N_blocks, 3), their variances and per-channel
+    validity for one LED (thesis eq. 4.31-4.50 through :mod:`glossrig.core.radiometry.hdr`
+    and :mod:`glossrig.core.radiometry.patch`)."""
+    seq = led_sequence(man, geom.rotation, led)
+    if not seq:
+        raise InputError(f"no sequence for LED {led} at rotation {geom.rotation:g} deg", path=man.path)
+    rate, var, status, cfa, ends = led_rate(man, rig, seq, geom.crop, estimator)
     tfix = hdrmod.exposure_to_fix(ends, status)
     norm = normalise_by_patch(rate, geom.patch_mask, cfa, variance=var, name=str(man.folder / seq[0].file))
     assert norm.variance is not None        # a variance went in

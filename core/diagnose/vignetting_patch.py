@@ -1,0 +1,295 @@
+"""Vignetting's signature in the white patch (issue 14, items 3 and 5): the same surface seen by
+both captures.
+
+Why. Lens vignetting multiplies the irradiance at the sensor by ``1 - k q`` (q = r^2 / r_corner^2,
+r from the principal point; :func:`glossrig.core.diagnose.catalogue.vignetting_factor`). When the
+sample capture is vignetted and the reference capture is not (the aperture or the focus changed
+between them), every measured BRDF value carries ``(1 - k q) / (1 - k q_patch)``. In BRDF space that
+factor is nearly a function of the sample's angles: across the cylinder (the image's v on the thesis
+rig) q and theta_out change together, and along it (u) the sample occupies the image's middle, so a
+real material's own departure from its model takes it up (measured on the blind study's
+satin_rosaline and ilm_l3_37_matte captures: the held-out error of the BRDF-space cause varies by
+under 2 % over k in [-0.5, 0.9]; and along the axis alone, where the angles barely change, an
+anisotropic material's misfit in phi_h still reads as k = -0.1 to -0.24 on a capture without
+vignetting - a material *can* produce that signature).
+
+The signature no material produces. The marker's white patch on the holder is the same surface,
+under the same LED at the same place, in the sample capture and in the reference capture (the
+holder stays in the box; only the sample on the cylinder is swapped), seen by the same pixels.
+So the ratio of the two captures' HDR rates, pixel by pixel over the patch, is one number per
+LED and colour - the LED's output in the two captures - whatever the patch's irradiance pattern
+and whatever the sample's material. Vignetting of one capture against the other tilts that ratio
+with q: ``log(R_s / R_r) = a_(LED, colour) + log(1 - k q)``. The patch sits off the optical axis
+(q ~ 0.17-0.26 across it on the thesis rig at scale 0.25), so k = 0.1 tilts the ratio by ~0.8 %
+across the patch, which its thousands of pixels measure to ~0.1 %.
+
+Measurement (:func:`patch_rates`, :func:`patch_evidence`): each LED's exposure sequence of both
+captures is combined over the patch's bounding box (the pipeline's own HDR,
+:func:`glossrig.core.extraction.extract.led_rate`); the pixels of both captures' patch masks
+(shrunk by the extraction's PATCH_SHRINK, away from the red frame) with a valid rate in both enter.
+k is the weighted least-squares fit of the log ratio (EMVA variances of both rates) with a free
+offset per (LED, colour), its standard error scaled by the residual's own spread. Pixels beyond
+OUTLIER_Z robust standard deviations of the k = 0 fit (hot pixels, a marker edge) are left out.
+Held-out test: leave one LED out - k from the other LEDs, the held-out LED's offsets from its own
+pixels - the gain of its chi^2 over k = 0 (with one LED: the patch's two halves in u). The signature
+is *significant* when the pooled held-out gain exceeds PATCH_GAIN, the folds agree
+(:func:`glossrig.core.diagnose.catalogue.consistent_folds`) and the per-LED estimates measure one
+value (:func:`glossrig.core.diagnose.catalogue.one_value`): an LED whose emission pattern or position
+changed between the captures tilts its own patch ratio, differently under each LED, while vignetting
+tilts every LED's alike - and *radially*: q changes along the line from the principal point to the
+patch and is flat across it, so under no LED may the ratio have a gradient across that line beyond
+TANGENTIAL_Z standard errors (:func:`tangential_z`). On the thesis rig the patch lies along the
+cylinder axis from the sample, which is also where an LED's cos^n emission pattern falls off from its
+axis (aimed at the sample), so the radial tilt alone does not tell a changed emission pattern from
+vignetting; its tilt across the radius does (measured on the blind study: 9-95 standard errors
+under the LED-emission captures, 0.3-1.6 under vignetting, none and an LED moved by 1.3 mm).
+
+Use (:func:`apply_patch_evidence`): a significant signature names the BRDF-space ``vignetting``
+cause (``frame_signature``) where the BRDF data do not contradict it - the BRDF model with k held at
+the patch's value (no parameter of it fitted to the rows, rho_d and rho_s re-solved) is no worse on
+the pooled rows - with the patch's k, its held-out gains and standard error. A patch that measures
+k consistent with 0 refutes a BRDF-space k more than BOUND_Z combined standard errors away.
+Assumption, stated: the holder did not move between the captures (the two patch masks, from each
+capture's own marker detection, are intersected; a shift of the patch shows as a failed fit).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from glossrig.core.diagnose.catalogue import (CauseResult, THRESHOLDS, consistent_folds, fixed_term_test, one_value,
+                                              vignetting_factor, vignetting_q)
+
+OUTLIER_Z = 5.0      # pixels beyond this many robust sigmas of the k = 0 fit are left out (hot pixels, edges)
+#: held-out chi^2 gain the patch's tilt must exceed: the pixel space's threshold (null captures' patch fits
+#: gain below it, validation/diagnose/blind_study.md), one parameter's penalty included
+PATCH_GAIN = THRESHOLDS["pixels"][0] + THRESHOLDS["pixels"][1]
+BOUND_Z = 3.0        # a BRDF-space k this many combined standard errors from the patch's refutes it
+TANGENTIAL_Z = 5.0   # a gradient across the radius beyond this many standard errors: the tilt is no vignetting
+K_RANGE = (-0.5, 0.9)  # the BRDF-space vignetting cause's search range (catalogue.instrument_causes)
+
+
+def patch_box(geom) -> tuple[int, int, int, int]:
+    """The patch's bounding box (x0, y0, x1, y1) in the full image, its origin on the CFA's phase (even)."""
+    ii, jj = np.nonzero(geom.patch_mask)
+    x0, y0 = geom.crop[0] + int(jj.min()), geom.crop[1] + int(ii.min())
+    x0, y0 = x0 - (x0 - geom.crop[0]) % 2, y0 - (y0 - geom.crop[1]) % 2
+    return x0, y0, geom.crop[0] + int(jj.max()) + 1, geom.crop[1] + int(ii.max()) + 1
+
+
+def _mask_in(geom, box) -> np.ndarray:
+    """``geom``'s patch mask over ``box`` (full-image coordinates)."""
+    x0, y0, x1, y1 = box
+    out = np.zeros((y1 - y0, x1 - x0), bool)
+    ii, jj = np.nonzero(geom.patch_mask)
+    u, v = geom.crop[0] + jj - x0, geom.crop[1] + ii - y0
+    ok = (u >= 0) & (u < x1 - x0) & (v >= 0) & (v < y1 - y0)
+    out[v[ok], u[ok]] = True
+    return out
+
+
+def patch_rates(sample_dir, reference_dir, sample_geometry: dict, reference_geometry: dict) -> list[dict]:
+    """Both captures' HDR rates over the white patch, per (rotation, LED): a list of units with the
+    full-image pixel ``u``, ``v``, the CFA ``colour`` (0 R, 1 G, 2 B), the rates ``rs``, ``rr`` and their
+    variances ``vs``, ``vr`` of the pixels in both patch masks with a valid rate in both."""
+    from glossrig.core.capture import load_manifest
+    from glossrig.core.calibration.demosaic import channel_index
+    from glossrig.core.extraction.extract import led_rate, led_sequence
+    from glossrig.core.rig import load_rig
+
+    ms, mr = load_manifest(Path(sample_dir)), load_manifest(Path(reference_dir))
+    rig_s, rig_r = load_rig(ms.folder / "rig.toml"), load_rig(mr.folder / "rig.toml")
+    units = []
+    for rot, gs in sorted(sample_geometry.items()):
+        gr = reference_geometry.get(rot)
+        if gr is None:
+            continue
+        box = patch_box(gs)
+        mask = _mask_in(gs, box) & _mask_in(gr, box)
+        leds = sorted({im.leds[0] for im in ms.images if im.role == "sequence" and im.rotation == rot
+                       and len(im.leds) == 1})
+        for led in leds:
+            seq_s, seq_r = led_sequence(ms, rot, led), led_sequence(mr, rot, led)
+            if not seq_s or not seq_r:
+                continue
+            rs, vs, sts, cfa, _ = led_rate(ms, rig_s, seq_s, box)
+            rr, vr, _, _, _ = led_rate(mr, rig_r, seq_r, box)
+            ok = mask & np.isfinite(rs) & np.isfinite(rr) & (rs > 0) & (rr > 0) & np.isfinite(vs) & np.isfinite(vr)
+            ii, jj = np.nonzero(ok)
+            col = channel_index(rs.shape, cfa)
+            units.append({"rotation": float(rot), "led": int(led), "u": (box[0] + jj).astype(float),
+                          "v": (box[1] + ii).astype(float), "colour": col[ok].astype(int),
+                          "rs": rs[ok].astype(float), "rr": rr[ok].astype(float),
+                          "vs": vs[ok].astype(float), "vr": vr[ok].astype(float)})
+    return units
+
+
+def _design(units, size, pp):
+    """Stacked log ratio x, its variance, q, the (LED, colour) group of every pixel and its LED."""
+    x = np.concatenate([np.log(u["rs"] / u["rr"]) for u in units])
+    var = np.concatenate([u["vs"] / u["rs"] ** 2 + u["vr"] / u["rr"] ** 2 for u in units])
+    q = np.concatenate([vignetting_factor(u["u"], u["v"], size, pp) for u in units])
+    grp = np.concatenate([i * 3 + u["colour"] for i, u in enumerate(units)])
+    led = np.concatenate([np.full(len(u["u"]), u["led"]) for u in units])
+    half = np.concatenate([u["u"] >= np.median(u["u"]) for u in units])
+    unit = np.concatenate([np.full(len(u["u"]), i) for i, u in enumerate(units)])
+    return x, var, q, grp, led, half, unit
+
+
+def _offsets(x, w, grp) -> np.ndarray:
+    """Each group's weighted mean of ``x``, per pixel."""
+    n = int(grp.max()) + 1
+    return (np.bincount(grp, w * x, n) / np.maximum(np.bincount(grp, w, n), 1e-300))[grp]
+
+
+def _fit_k(x, w, q, grp, rows) -> float:
+    """k of ``log(1 - k q)`` with a free offset per group, weighted least squares over ``rows`` (the
+    log-factor's curvature in k is below 1 % of its slope at q < 0.3 and |k| < 0.9: the first-order fit
+    ``-k q``, then one Gauss-Newton step on the exact factor)."""
+    xr, wr, qr, gr = x[rows], w[rows], q[rows], grp[rows]
+    k = 0.0
+    for _ in range(3):
+        f = np.log(np.clip(1 - k * qr, 1e-6, None))
+        d = -qr / np.clip(1 - k * qr, 1e-6, None)          # d f / d k
+        r = xr - f
+        r = r - _offsets(r, wr, gr)
+        dd = d - _offsets(d, wr, gr)
+        den = float(np.sum(wr * dd * dd))
+        if den <= 0:
+            return float("nan")
+        k = k + float(np.sum(wr * dd * r)) / den
+    return k
+
+
+def _chi2_at(x, w, q, grp, rows, k) -> float:
+    f = np.log(np.clip(1 - k * q[rows], 1e-6, None))
+    r = x[rows] - f
+    r = r - _offsets(r, w[rows], grp[rows])
+    return float(np.mean(w[rows] * r * r))
+
+
+def tangential_z(x, w, q, grp, unit, du, dv, radial) -> dict[int, float]:
+    """Per unit (rotation, LED): the log ratio's gradient across the ``radial`` direction (from the
+    principal point to the patch), in standard errors - fitted with a free offset per colour and a free
+    ``q`` term. Vignetting is radial: across the radius q is flat at the patch's centre, so a gradient
+    there is something else (an LED whose emission pattern or position changed between the captures
+    tilts the patch along its own direction; module docstring)."""
+    r = np.hypot(*radial)
+    t = (-radial[1] * du + radial[0] * dv) / max(r, 1e-9)          # pixels across the radius
+    out = {}
+    for j in np.unique(unit):
+        s = unit == j
+        cols = []
+        for a in (x, q, t):
+            cols.append(a[s] - _offsets(a[s], w[s], np.unique(grp[s], return_inverse=True)[1]))
+        X = np.stack(cols[1:], axis=1)
+        sw = np.sqrt(w[s])
+        coef, *_ = np.linalg.lstsq(X * sw[:, None], cols[0] * sw, rcond=None)
+        res = cols[0] - X @ coef
+        red = float(np.sum(w[s] * res * res)) / max(int(s.sum()) - 5, 1)
+        cov = np.linalg.pinv((X * w[s][:, None]).T @ X) * red
+        out[int(j)] = float(coef[1] / math.sqrt(max(cov[1, 1], 1e-300)))
+    return out
+
+
+def patch_evidence(units: list[dict], size, pp) -> dict | None:
+    """The patch's vignetting tilt (module docstring): k, its standard error, per-LED estimates, the
+    held-out fold gains and whether it is a signature. None when the patch gave no pixels."""
+    units = [u for u in units if len(u["u"]) >= 30]
+    if not units:
+        return None
+    x, var, q, grp, led, half, unit = _design(units, size, pp)
+    uu = np.concatenate([u["u"] for u in units])
+    vv = np.concatenate([u["v"] for u in units])
+    w = 1.0 / np.maximum(var, 1e-30)
+    # outliers of the k = 0 fit, by a robust scale of the normalised residual
+    r0 = (x - _offsets(x, w, grp)) * np.sqrt(w)
+    scale = 1.4826 * float(np.median(np.abs(r0 - np.median(r0))))
+    keep = np.abs(r0) <= OUTLIER_Z * max(scale, 1e-12)
+    x, w, q, grp, led, half, unit, uu, vv = (a[keep] for a in (x, w, q, grp, led, half, unit, uu, vv))
+    du, dv = uu - float(np.mean(uu)), vv - float(np.mean(vv))
+    pp_dir = (float(np.mean(uu)) - pp[0], float(np.mean(vv)) - pp[1])
+    grp = np.unique(grp, return_inverse=True)[1]
+    allr = np.ones(len(x), bool)
+    k = _fit_k(x, w, q, grp, allr)
+    leds = np.unique(led)
+    folds = ([(led != l, led == l) for l in leds] if len(leds) >= 2 else [(~half, half), (half, ~half)])
+    gains, e0s, e1s, fold_k = [], 0.0, 0.0, []
+    for train, test in folds:
+        kt = _fit_k(x, w, q, grp, train)
+        fold_k.append(kt)
+        e0, e1 = _chi2_at(x, w, q, grp, test, 0.0), _chi2_at(x, w, q, grp, test, kt)
+        gains.append((e0 - e1) / e0 if e0 > 0 else 0.0)
+        e0s, e1s = e0s + e0 * test.sum(), e1s + e1 * test.sum()
+    per_led = {int(l): _fit_k(x, w, q, grp, led == l) for l in leds}
+    # standard error: the linearised fit's, scaled by the residual's reduced chi^2 (the HDR variances
+    # need not describe the ratio's scatter exactly)
+    d = -q / np.clip(1 - k * q, 1e-6, None)
+    dd = d - _offsets(d, w, grp)
+    red = _chi2_at(x, w, q, grp, allr, k) * len(x) / max(len(x) - int(grp.max()) - 2, 1)
+    se = math.sqrt(red / max(float(np.sum(w * dd * dd)), 1e-300))
+    gain = (e0s - e1s) / e0s if e0s > 0 else 0.0
+    tz = tangential_z(x, w, q, grp, unit, du, dv, pp_dir)
+    probe = CauseResult("vignetting_patch", "pixels", "", {"k": k}, {"k": se}, e1s / len(x), e0s / len(x), gains, 1)
+    one_value(probe, list(per_led.values()) if len(per_led) >= 2 else fold_k, k, *K_RANGE, 0.0)
+    why = None
+    if not gain > PATCH_GAIN:
+        why = f"held-out gain {gain:.2%} below {PATCH_GAIN:.1%}"
+    elif not consistent_folds(gains):
+        why = "the held-out folds do not agree"
+    elif not probe.identifiable:
+        why = probe.note
+    elif max(abs(z) for z in tz.values()) > TANGENTIAL_Z:
+        worst = max(tz, key=lambda j: abs(tz[j]))
+        why = (f"the patch's tilt is not radial from the optical centre (under LED {units[worst]['led']} its "
+               f"gradient across the radius is {tz[worst]:+.1f} standard errors): an LED's emission or position "
+               f"changed between the captures, which no lens does")
+    return {"k": float(k), "se": float(se), "gain": float(gain), "fold_gains": [float(g) for g in gains],
+            "per_led": per_led, "tangential_z": {int(units[j]["led"]): float(z) for j, z in tz.items()},
+            "n_pixels": int(len(x)), "outliers": int((~keep).sum()),
+            "q_range": [float(q.min()), float(q.max())], "significant": why is None, "why_not": why,
+            "unit": "relative fall-off at the corner (as the BRDF-space vignetting cause's k)"}
+
+
+def fixed_k_test(m, k: float):
+    """The BRDF model with the vignetting factor of the patch's ``k`` held fixed against the model
+    without it (:func:`glossrig.core.diagnose.catalogue.fixed_term_test`): (base error, error, gains on
+    each LED's rows, prediction)."""
+    q, qp = vignetting_q(m)
+    return fixed_term_test(m, [m.diffuse(), m.cols["L"]], factor=(1 - k * q) / (1 - k * qp))
+
+
+def apply_patch_evidence(m, causes: list[CauseResult], ev: dict | None) -> None:
+    """Judge the BRDF-space ``vignetting`` cause by the white patch (module docstring), in place;
+    ``m``: the model the cause was fitted on (:func:`glossrig.core.diagnose.catalogue.model_of`)."""
+    c = next((x for x in causes if x.name == "vignetting" and x.space == "brdf"), None)
+    if c is None or ev is None:
+        return
+    k_b = float(c.params.get("k", float("nan")))
+    se_b = float(c.stderr.get("k", 0.0) or 0.0)
+    c.params.update({"k_patch": ev["k"], "k_patch_se": ev["se"], "patch": {
+        k: ev[k] for k in ("gain", "fold_gains", "per_led", "n_pixels", "significant", "why_not")}})
+    if ev["significant"]:
+        e0, e1, led_gains, pred = fixed_k_test(m, ev["k"])
+        c.params["fixed_k_brdf_gain"] = (e0 - e1) / e0 if e0 > 0 else 0.0
+        c.params["fixed_k_brdf_led_gains"] = led_gains
+        if e1 <= e0:
+            c.params.update({"k_brdf": k_b, "k": ev["k"], "fixed_by": "patch"})
+            c.stderr["k"] = ev["se"]
+            # the cause's test is the patch's: held-out gains over the LEDs of the tilt of both captures' ratio
+            c.base_error, c.error, c.fold_gains = 1.0, 1.0 - ev["gain"], ev["fold_gains"]
+            c.prediction, c.magnitude = pred, ev["k"]
+            c.params["free_fit_robust"], c.robust = c.robust, None
+            c.identifiable, c.frame_signature = True, True
+            c.note = (f"white-patch signature: the patch, the same surface in the sample and reference captures, "
+                      f"is tilted between them as 1 - k q with k = {ev['k']:.3g} +- {ev['se']:.2g} under every LED "
+                      f"(held-out gain {ev['gain']:.1%}; no material acts there); the BRDF data agree "
+                      f"(free BRDF-space fit: k = {k_b:.3g})")
+            return
+    if (np.isfinite(k_b) and c.significant
+            and abs(k_b - ev["k"]) > BOUND_Z * math.hypot(ev["se"], se_b) and abs(ev["k"]) < BOUND_Z * ev["se"]):
+        c.refuted = (f"the white patch refutes it: seen in both captures it shows no vignetting between them "
+                     f"(k = {ev['k']:.2g} +- {ev['se']:.2g}), the BRDF-space fit needs k = {k_b:.3g}")
+        c.note = (c.note + "; " if c.note else "") + c.refuted
