@@ -9,7 +9,7 @@ pixels) and names the winner, or "none" when no cause beats the stated
 threshold. The BRDF-space ``stray_light`` cause is judged by the frames' dark pixels
 (:mod:`.stray_light`: refuted where they are darker than its veil, named through their
 frame-space signature where they carry it); the BRDF-space ``vignetting`` cause by the marker's
-white patch, the same surface in the sample and reference captures (:mod:`.vignetting_patch`).
+white patch, the same surface in the sample and reference captures (:mod:`.white_patch`).
 :mod:`.report` writes report.json and report.md. With the reference's own BRDF
 the measured table is first renormalised with it - a calibration step that is applied and
 reported (``meta.reference_calibration``), not a cause (issue 14, item 4).
@@ -32,7 +32,8 @@ from glossrig.core.diagnose.frames import FrameStage, frame_stage
 from glossrig.core.diagnose.report import verdict, write_report
 from glossrig.core.diagnose.residuals import brdf_structure
 from glossrig.core.diagnose.stray_light import apply_frame_evidence, frame_evidence
-from glossrig.core.diagnose.vignetting_patch import apply_patch_evidence, patch_evidence, patch_rates
+from glossrig.core.diagnose.white_patch import (apply_emission_evidence, apply_patch_evidence, emission_evidence,
+                                                patch_evidence, patch_points, patch_rates)
 from glossrig.core.diagnose.unexplained import retested_cause, unexplained
 
 
@@ -136,7 +137,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     # the frame-space stage (the raws, the sensor and LED causes) runs in a worker process beside the
     # BRDF-space causes: on a 2-core machine the two share the cores instead of taking turns
     bg = FrameStage(sample_dir, data.measured) if store is None or not store.has("frame_stage") else None
-    # the white patch in both captures (vignetting's signature, vignetting_patch.py): its raws read in a third process
+    # the white patch in both captures (vignetting's signature, white_patch.py): its raws read in a third process
     patch_args = (str(sample_dir), str(reference_dir), data.measured.geometry, data.reference_geometry or {})
     pw = InWorker(patch_rates, *patch_args) if store is None or not store.has("patch_rates") else None
     with bg if bg is not None else contextlib.nullcontext(), pw if pw is not None else contextlib.nullcontext():
@@ -152,12 +153,21 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
         apply_frame_evidence(model_of(m, next((c for c in causes if c.name == "stray_light"), None)), causes, stray)
     if stray is not None:
         log(f"stray light in the frames' dark pixels: s = {stray['s']:.3g} +- {stray['se']:.2g}")
+    # the white patch in both captures: vignetting and a changed LED emission pattern (white_patch.py)
     vig = patch_evidence(units, data.image_size, data.principal_point)
+    emission = None
+    if data.camera is not None:
+        patch_points(units, data)
+        emission = emission_evidence(units, data.lamps, data.image_size, data.principal_point)
     with one_blas_thread():
-        apply_patch_evidence(model_of(m, next((c for c in causes if c.name == "vignetting"), None)), causes, vig)
-    if vig is not None:
-        log(f"vignetting in the white patch (sample against reference): k = {vig['k']:.3g} +- {vig['se']:.2g}, "
-            f"held-out gain {vig['gain']:.2%}{'' if vig['significant'] else ' (no signature: ' + str(vig['why_not']) + ')'}")
+        apply_patch_evidence(model_of(m, next((c for c in causes if c.name == "vignetting"), None)), causes, vig,
+                             emission)
+        apply_emission_evidence(model_of(m, next((c for c in causes if c.name == "led_emission"), None)), causes,
+                                emission)
+    for what, ev, p in (("vignetting", vig, "k"), ("an LED emission pattern", emission, "n")):
+        if ev is not None:
+            log(f"{what} in the white patch (sample against reference): {p} = {ev[p]:.3g} +- {ev['se']:.2g}, "
+                f"held-out gain {ev['gain']:.2%}{'' if ev['significant'] else ' (no signature: ' + str(ev['why_not']) + ')'}")
     causes = causes + fcauses
     log(f"frame-space causes done ({took()})")
     structure = {"brdf": brdf_structure(m), "frames": fstructure}
@@ -168,7 +178,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
             "fit": str(fit) if fit else None, "fit_check": fit_check, "material": w.as_dict(),
             "material_from_capture": fit is None,
             "stray_light_frames": stray,
-            "vignetting_patch": vig,
+            "vignetting_patch": vig, "led_emission_patch": emission,
             "n_brdf_rows": int(len(m.rows)), "leds": sorted(int(x) for x in np.unique(t.led)),
             "missing_channels": m.channel_fill, "reference_calibration": cal or {"applied": False},
             "splits": {"brdf": "leave one LED out (per-LED parameters or one LED: the two halves of the pixel rows)",

@@ -685,7 +685,7 @@ def fixed_term_test(m: BrdfModel, basis, factor=None, offset=None) -> tuple[floa
     it, ``basis``'s coefficients (and any flexible columns) re-solved on all rows for each. Nothing of the
     term is fitted to the rows, so they are all scored: (base error, error, the relative gain on each
     LED's rows, prediction). The frames' stray-light veil (:mod:`.stray_light`) and the white patch's
-    vignetting (:mod:`.vignetting_patch`) are tested so."""
+    vignetting (:mod:`.white_patch`) are tested so."""
     c = m.cols
     allr = np.ones(len(c["y"]), bool)
     _, pb, _ = m.solve_linear(basis, allr)
@@ -1177,7 +1177,7 @@ def instrument_causes(m: BrdfModel, mrot: BrdfModel, done, rotation=True, only=L
                "the patch normalisation leaves (1 - k q) / (1 - k q_patch) on every value when the sample capture "
                "is vignetted and the reference is not; it grows with the distance from the optical centre. The "
                "white patch, the same surface in both captures, measures k without the material "
-               "(glossrig.core.diagnose.vignetting_patch).")
+               "(glossrig.core.diagnose.white_patch).")
         make_v = lambda k: ([one, c["L"]], (1 - k * q) / (1 - k * qp))       # noqa: E731
         r = _scalar_cause(m, "vignetting", doc, make_v, (-0.5, 0.9), "k", "relative fall-off at the corner")
         one_value_per_led(r, m, make_v, (-0.5, 0.9), "k", 0.0)

@@ -43,7 +43,7 @@ class BrdfData:
     #: the calibration with the reference's own BRDF applied to ``table`` (:func:`renormalise_table`); None: not applied
     reference_calibration: dict | None = None
     #: rotation -> RotationGeometry of the reference capture (its own marker detection): the white patch's
-    #: pixels there (:mod:`glossrig.core.diagnose.vignetting_patch`); None: not known
+    #: pixels there (:mod:`glossrig.core.diagnose.white_patch`); None: not known
     reference_geometry: dict | None = None
 
 

@@ -1,6 +1,6 @@
-"""Vignetting's white-patch signature (core/diagnose/vignetting_patch.py, issue 14): the patch, the
-same surface in the sample and reference captures, measures the vignetting between them where the
-BRDF data cannot tell it from the material."""
+"""The white patch as a witness (core/diagnose/white_patch.py, issue 14): the patch, the same surface
+in the sample and reference captures, measures the vignetting and a changed LED emission pattern
+between them where the BRDF data cannot tell them from the material."""
 from __future__ import annotations
 
 import copy
@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from glossrig.core.diagnose.catalogue import vignetting_factor
-from glossrig.core.diagnose.vignetting_patch import PATCH_GAIN, apply_patch_evidence, patch_evidence
+from glossrig.core.diagnose.white_patch import (PATCH_GAIN, apply_emission_evidence, apply_patch_evidence,
+                                               emission_evidence, patch_evidence, patch_points)
 
 from test_diagnose import synthetic_brdf
 
@@ -155,7 +156,7 @@ def test_patch_rates_read_from_rewritten_dngs(tiny_captures, tmp_path):
     from glossrig.core.calibration.intrinsics import load_camera
     from glossrig.core.capture import load_manifest
     from glossrig.core.extraction.extract import rotation_geometry
-    from glossrig.core.diagnose.vignetting_patch import patch_rates
+    from glossrig.core.diagnose.white_patch import patch_rates
     from glossrig.core.rig import load_rig
     from glossrig.twin.rewrite_raw import rewrite_capture
 
@@ -179,3 +180,81 @@ def test_patch_rates_read_from_rewritten_dngs(tiny_captures, tmp_path):
     assert out["vig"]["significant"], out["vig"]
     assert abs(out["vig"]["k"] - 0.3) < 4 * out["vig"]["se"], out["vig"]
     assert not out["null"]["significant"] and abs(out["null"]["k"]) < 4 * out["null"]["se"], out["null"]
+
+
+# ----------------------------------------------------------------- the LED emission pattern
+
+def emission_units(data, seed, n=0.0, k=0.0, es_seed=None):
+    """Patch units of a synthetic BRDF capture (tests/test_diagnose.synthetic_brdf): the pixels around its
+    patch centre, their points on the marker's plane (:func:`patch_points`), the sample capture's rates
+    times the twin's cos^n emission pattern of ``EffectState`` (seed ``es_seed``: the tilt directions) and
+    ``1 - k q``."""
+    from glossrig.core.rig import load_rig
+    from glossrig.twin.effects import EffectState
+
+    u0, v0 = (int(round(x)) for x in data.patch_uv[0.0])
+    units = synthetic_units(seed, k, leds=tuple(sorted(data.lamps)), centre=(u0, v0), half=20,
+                            size=data.image_size, pp=data.principal_point)
+    patch_points(units, data)
+    if n > 0:
+        rig = load_rig(data.measured.rig_path)
+        es = EffectState({"led_emission": n}, es_seed, rig.led_ids())
+        for un in units:
+            f = es.emission_factor(un["led"], np.asarray(rig.led(un["led"]).position, float), un["X"])
+            un["rs"] = un["rs"] * f
+            un["vs"] = un["vs"] * f ** 2
+    return units
+
+
+@pytest.fixture(scope="module")
+def emission_brdf():
+    """A Ward capture whose LEDs emit as cos^15 about their (tilted) axes, its BRDF-space causes fitted."""
+    from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes
+
+    data, ward = synthetic_brdf(44, "led_emission", 15.0)
+    m = BrdfModel.build(data, ward)
+    return m, brdf_causes(m)
+
+
+def test_patch_measures_the_emission_pattern(emission_brdf):
+    m, _ = emission_brdf
+    lamps = m.data.lamps
+    ev = emission_evidence(emission_units(m.data, 50, n=15.0, es_seed=44), lamps, m.data.image_size,
+                           m.data.principal_point)
+    assert ev["significant"], ev
+    assert abs(ev["n"] - 15.0) < 4 * ev["se"], ev
+    assert ev["se"] < 5.0                            # the patch measures n, not just a tilt
+    for seed, k in ((51, 0.0), (52, 0.25)):          # no change, and vignetting: no emission pattern
+        ev = emission_evidence(emission_units(m.data, seed, k=k), lamps, m.data.image_size, m.data.principal_point)
+        assert not ev["significant"], (k, ev)
+
+
+def test_the_patch_names_the_emission_pattern_where_the_brdf_data_agree(emission_brdf):
+    from glossrig.core.diagnose.catalogue import model_of
+    from glossrig.core.diagnose.report import verdict
+
+    m, causes = emission_brdf
+    causes = copy.deepcopy(causes)
+    ev = emission_evidence(emission_units(m.data, 53, n=15.0, es_seed=44), m.data.lamps, m.data.image_size,
+                           m.data.principal_point)
+    c = next(x for x in causes if x.name == "led_emission")
+    apply_emission_evidence(model_of(m, c), causes, ev)
+    assert c.frame_signature and c.params["fixed_by"] == "patch" and c.params["fixed_brdf_gain"] > 0
+    assert abs(c.magnitude - 15.0) < 4 * ev["se"]
+    assert verdict(causes) == "led_emission"
+    json.dumps(c.to_json())
+
+
+def test_an_emission_pattern_the_brdf_data_do_not_show_is_not_named(vignetted_brdf):
+    """The patch shows a pattern, the BRDF rows (a capture without one) get worse with it held fixed:
+    the patch alone names nothing."""
+    from glossrig.core.diagnose.catalogue import model_of
+
+    m, causes = vignetted_brdf
+    causes = copy.deepcopy(causes)
+    ev = emission_evidence(emission_units(m.data, 54, n=40.0, es_seed=44), m.data.lamps, m.data.image_size,
+                           m.data.principal_point)
+    assert ev["significant"]
+    c = next(x for x in causes if x.name == "led_emission")
+    apply_emission_evidence(model_of(m, c), causes, ev)
+    assert not c.frame_signature and c.params["fixed_brdf_gain"] < 0
