@@ -125,11 +125,22 @@ def test_the_patch_names_vignetting_with_its_k(vignetted_brdf):
     units = _patch_units_for(m, 0.2, 42)
     ev = patch_evidence(units, m.data.image_size, m.data.principal_point)
     vig = next(c for c in causes if c.name == "vignetting")
+    assert vig.significant                          # the Ward capture's BRDF rows name it themselves
+    k_brdf = vig.params["k"]
     apply_patch_evidence(model_of(m, vig), causes, ev)
-    assert vig.frame_signature and vig.params["fixed_by"] == "patch"
-    assert abs(vig.magnitude - 0.2) < 4 * expected_se(units, m.data.image_size, m.data.principal_point)
+    # they agree with the patch, so their own fit stays and the patch confirms it
+    assert vig.frame_signature and vig.params["confirmed_by"] == "patch" and vig.params["k"] == k_brdf
+    assert abs(vig.params["k_patch"] - 0.2) < 4 * expected_se(units, m.data.image_size, m.data.principal_point)
     assert verdict(causes) == "vignetting"
     json.dumps(vig.to_json())                      # report.json can hold it
+    # where the BRDF-space fit is not significant by itself, the cause takes the patch's test and value
+    causes = copy.deepcopy(vignetted_brdf[1])
+    vig = next(c for c in causes if c.name == "vignetting")
+    vig.identifiable = False                        # as on a real material whose misfit flattens its profile
+    apply_patch_evidence(model_of(m, vig), causes, ev)
+    assert vig.frame_signature and vig.params["fixed_by"] == "patch" and vig.significant
+    assert abs(vig.magnitude - 0.2) < 4 * expected_se(units, m.data.image_size, m.data.principal_point)
+    assert verdict(causes) == "vignetting"
 
 
 def test_a_flat_patch_refutes_a_brdf_space_vignetting(vignetted_brdf):
@@ -238,11 +249,18 @@ def test_the_patch_names_the_emission_pattern_where_the_brdf_data_agree(emission
     ev = emission_evidence(emission_units(m.data, 53, n=15.0, es_seed=44), m.data.lamps, m.data.image_size,
                            m.data.principal_point)
     c = next(x for x in causes if x.name == "led_emission")
+    assert c.significant
+    apply_emission_evidence(model_of(m, c), causes, ev)
+    assert c.frame_signature and c.params["confirmed_by"] == "patch"
+    assert verdict(causes) == "led_emission"
+    json.dumps(c.to_json())
+    causes = copy.deepcopy(emission_brdf[1])
+    c = next(x for x in causes if x.name == "led_emission")
+    c.identifiable = False                          # the BRDF rows alone do not name it
     apply_emission_evidence(model_of(m, c), causes, ev)
     assert c.frame_signature and c.params["fixed_by"] == "patch" and c.params["fixed_brdf_gain"] > 0
     assert abs(c.magnitude - 15.0) < 4 * ev["se"]
     assert verdict(causes) == "led_emission"
-    json.dumps(c.to_json())
 
 
 def test_an_emission_pattern_the_brdf_data_do_not_show_is_not_named(vignetted_brdf):
