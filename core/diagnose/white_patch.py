@@ -46,8 +46,8 @@ under the LED-emission captures, 0.3-1.6 under vignetting, none and an LED moved
 
 Use (:func:`apply_patch_evidence`): a significant signature names the BRDF-space ``vignetting``
 cause (``frame_signature``) where the BRDF data do not contradict it - the BRDF model with k held at
-the patch's value (no parameter of it fitted to the rows, rho_d and rho_s re-solved) is no worse on
-the pooled rows - with the patch's k, its held-out gains and standard error. A patch that measures
+the patch's value (no parameter of it fitted to the rows, rho_d and rho_s re-solved) raises the
+pooled rows' error by less than the BRDF space's threshold - with the patch's k, its held-out gains and standard error. A patch that measures
 k consistent with 0 refutes a BRDF-space k more than BOUND_Z combined standard errors away.
 Assumption, stated: the holder did not move between the captures (the two patch masks, from each
 capture's own marker detection, are intersected; a shift of the patch shows as a failed fit).
@@ -65,8 +65,8 @@ pattern - no change, or vignetting: along the radius the pattern and vignetting 
 quadratically, and with both free n and k trade (their standard errors grow 2.5-fold), so the pattern
 must gain over vignetting where its per-LED tilt shows. A significant pattern (held-out gain above the
 pixel space's threshold for its 1 + 2 N_LED parameters, both halves, n above EMISSION_Z standard errors
-and off the bounds) names ``led_emission`` with the patch's n and tilts where the BRDF data agree (the
-model with that pattern held fixed is no worse on the pooled rows). Measured on the blind study's
+and off the bounds) names ``led_emission`` with the patch's n and tilts where the BRDF data do not
+contradict it (with that pattern held fixed the pooled rows' error rises by less than the threshold). Measured on the blind study's
 two-LED captures (n = 24.9, 24.8, 12.0 hidden): n = 22.3, 23.9, 11.7 +- 1.8; with vignetting hidden too
 (n = 10.4, 9.7, 20.6): 10.2, 12.6, 24.1; on a null capture, vignetting and LED position errors of 4 mm:
 held-out gain -0.2 to -0.3 %, not significant. An LED moved by a few millimetres barely changes the
@@ -80,8 +80,8 @@ from pathlib import Path
 
 import numpy as np
 
-from glossrig.core.diagnose.catalogue import (CauseResult, THRESHOLDS, consistent_folds, fixed_term_test, one_value,
-                                              vignetting_factor, vignetting_q)
+from glossrig.core.diagnose.catalogue import (GAIN_THRESHOLD, CauseResult, THRESHOLDS, consistent_folds,
+                                              fixed_term_test, one_value, vignetting_factor, vignetting_q)
 
 OUTLIER_Z = 5.0      # pixels beyond this many robust sigmas of the k = 0 fit are left out (hot pixels, edges)
 #: held-out chi^2 gain the patch's tilt must exceed: the pixel space's threshold (null captures' patch fits
@@ -275,9 +275,14 @@ def patch_evidence(units: list[dict], size, pp) -> dict | None:
 
 
 def _take_patch_test(c: CauseResult, m, ev: dict, pname: str, value: float, factor, extra: dict, note: str) -> bool:
-    """Where the BRDF data agree with the patch's estimate - the model ``m`` with the cause's ``factor`` at
-    that estimate held fixed is no worse on the pooled rows (:func:`~glossrig.core.diagnose.catalogue.fixed_term_test`,
-    its gains recorded) - the BRDF-space cause ``c`` takes the patch's test, in place: its value, standard
+    """Where the BRDF data do not contradict the patch's estimate - the model ``m`` with the cause's
+    ``factor`` at that estimate held fixed raises the error of the pooled rows by less than the BRDF
+    space's threshold GAIN_THRESHOLD, the least change it tells from a null capture's spread
+    (:func:`~glossrig.core.diagnose.catalogue.fixed_term_test`, its gains recorded; measured: on the
+    eight-LED satin capture with a vignetting of 0.135, read 0.137 +- 0.002 on the patch, the
+    material's flexible columns had taken the fall-off up and k held at the patch's value raised the
+    error by 0.24 %, while a pattern the rows do not have raises it 35- to 500-fold,
+    tests/test_white_patch.py) - the BRDF-space cause ``c`` takes the patch's test, in place: its value, standard
     error, held-out gains and ``frame_signature`` (the free BRDF-space estimate kept as ``<pname>_brdf``).
     Returns whether it did.
 
@@ -297,9 +302,9 @@ def _take_patch_test(c: CauseResult, m, ev: dict, pname: str, value: float, fact
             f"the white patch agrees ({pname} = {value:.3g} +- {ev['se']:.2g} there, held-out gain {ev['gain']:.1%})")
         return True
     e0, e1, led_gains, pred = fixed_term_test(m, [m.diffuse(), m.cols["L"]], factor=factor)
-    c.params["fixed_brdf_gain"] = (e0 - e1) / e0 if e0 > 0 else 0.0
+    c.params["fixed_brdf_gain"] = gain = (e0 - e1) / e0 if e0 > 0 else 0.0
     c.params["fixed_brdf_led_gains"] = led_gains
-    if not e1 <= e0:
+    if not gain > -GAIN_THRESHOLD:
         return False
     c.params.update({f"{pname}_brdf": c.params.get(pname), pname: value, "fixed_by": "patch", **extra})
     if isinstance(c.stderr, dict):
@@ -331,7 +336,7 @@ def apply_patch_evidence(m, causes: list[CauseResult], ev: dict | None, emission
         q, qp = vignetting_q(m)
         note = (f"white-patch signature: the patch, the same surface in the sample and reference captures, is tilted "
                 f"between them as 1 - k q with k = {ev['k']:.3g} +- {ev['se']:.2g} under every LED (held-out gain "
-                f"{ev['gain']:.1%}; no material acts there); the BRDF data agree (free BRDF-space fit: k = {k_b:.3g})")
+                f"{ev['gain']:.1%}; no material acts there); the BRDF data do not contradict it (free BRDF-space fit: k = {k_b:.3g})")
         if _take_patch_test(c, m, ev, "k", ev["k"], (1 - ev["k"] * q) / (1 - ev["k"] * qp), {}, note):
             return
     if (np.isfinite(k_b) and c.significant
@@ -530,10 +535,10 @@ def _chi2_fixed(parts, lamps, rows, p, em: bool, vig: bool) -> float:
 def apply_emission_evidence(m, causes: list[CauseResult], ev: dict | None) -> None:
     """Judge the BRDF-space ``led_emission`` cause by the white patch (module docstring), in place; ``m``:
     the model the cause was fitted on (:func:`glossrig.core.diagnose.catalogue.model_of`). A significant
-    pattern on the patch names the cause with the patch's n and tilts where the BRDF data agree - the BRDF
-    model with that pattern held fixed (:meth:`glossrig.core.diagnose.geometry.Geometry.evaluate`: on the
-    sample and, through the patch normalisation, on the patch; nothing of it fitted to the rows) is no
-    worse on the pooled rows. A patch that shows no pattern (n within EMISSION_Z standard errors of 0)
+    pattern on the patch names the cause with the patch's n and tilts where the BRDF data do not
+    contradict it (:func:`_take_patch_test`) - the BRDF model with that pattern held fixed
+    (:meth:`glossrig.core.diagnose.geometry.Geometry.evaluate`: on the sample and, through the patch
+    normalisation, on the patch; nothing of it fitted to the rows). A patch that shows no pattern (n within EMISSION_Z standard errors of 0)
     refutes a BRDF-space n more than BOUND_Z combined standard errors away."""
     from glossrig.core.diagnose.geometry import Geometry
 
@@ -549,7 +554,7 @@ def apply_emission_evidence(m, causes: list[CauseResult], ev: dict | None) -> No
         note = (f"white-patch signature: the patch, the same surface in the sample and reference captures, is shaded "
                 f"between them as an LED emission pattern cos^n with n = {ev['n']:.3g} +- {ev['se']:.2g} (held-out "
                 f"gain {ev['gain']:.1%} over no change and over vignetting; no material acts there); the BRDF data "
-                f"agree (free BRDF-space fit: n = {n_b:.3g})")
+                f"do not contradict it (free BRDF-space fit: n = {n_b:.3g})")
         if _take_patch_test(c, m, ev, "n", ev["n"], F, {"tilt_deg": ev["tilt_deg"]}, note):
             return
     if (np.isfinite(n_b) and np.isfinite(se_b) and c.significant and ev["n"] < EMISSION_Z * ev["se"]
