@@ -165,6 +165,14 @@ def _offsets(x, w, grp) -> np.ndarray:
     return (np.bincount(grp, w * x, n) / np.maximum(np.bincount(grp, w, n), 1e-300))[grp]
 
 
+def _inliers(x, w, grp) -> np.ndarray:
+    """The pixels within OUTLIER_Z robust standard deviations (MAD) of the no-change fit (a free offset per
+    group): hot pixels and a marker edge left out."""
+    r0 = (x - _offsets(x, w, grp)) * np.sqrt(w)
+    scale = 1.4826 * float(np.median(np.abs(r0 - np.median(r0))))
+    return np.abs(r0) <= OUTLIER_Z * max(scale, 1e-12)
+
+
 def _fit_k(x, w, q, grp, rows) -> float:
     """k of ``log(1 - k q)`` with a free offset per group, weighted least squares over ``rows`` (the
     log-factor's curvature in k is below 1 % of its slope at q < 0.3 and |k| < 0.9: the first-order fit
@@ -225,10 +233,7 @@ def patch_evidence(units: list[dict], size, pp) -> dict | None:
     uu = np.concatenate([u["u"] for u in units])
     vv = np.concatenate([u["v"] for u in units])
     w = 1.0 / np.maximum(var, 1e-30)
-    # outliers of the k = 0 fit, by a robust scale of the normalised residual
-    r0 = (x - _offsets(x, w, grp)) * np.sqrt(w)
-    scale = 1.4826 * float(np.median(np.abs(r0 - np.median(r0))))
-    keep = np.abs(r0) <= OUTLIER_Z * max(scale, 1e-12)
+    keep = _inliers(x, w, grp)
     x, w, q, grp, led, half, unit, uu, vv = (a[keep] for a in (x, w, q, grp, led, half, unit, uu, vv))
     du, dv = uu - float(np.mean(uu)), vv - float(np.mean(vv))
     pp_dir = (float(np.mean(uu)) - pp[0], float(np.mean(vv)) - pp[1])
@@ -446,9 +451,7 @@ def emission_evidence(units: list[dict], lamps: dict, size, pp) -> dict | None:
     for un in units:
         x = np.log(un["rs"] / un["rr"])
         w = 1.0 / np.maximum(un["vs"] / un["rs"] ** 2 + un["vr"] / un["rr"] ** 2, 1e-30)
-        r0 = (x - _offsets(x, w, un["colour"])) * np.sqrt(w)
-        scale = 1.4826 * float(np.median(np.abs(r0 - np.median(r0))))
-        keep = np.abs(r0) <= OUTLIER_Z * max(scale, 1e-12)
+        keep = _inliers(x, w, un["colour"])
         parts.append({"led": int(un["led"]), "x": x[keep], "w": w[keep], "colour": un["colour"][keep],
                       "X": un["X"][keep], "q": vignetting_factor(un["u"][keep], un["v"][keep], size, pp),
                       "half": un["u"][keep] >= np.median(un["u"][keep])})
