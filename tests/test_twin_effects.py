@@ -44,6 +44,13 @@ def test_geometric_effects_change_the_rendered_rig_and_the_truth(rig):
     np.testing.assert_allclose(v2.led_radiance(9), base.led_radiance(9), rtol=1e-4, atol=1e-7)
 
 
+def test_rotation_offset_of_a_sample_the_twin_does_not_turn_is_refused(rig):
+    """A lambert (or isotropic measured) sample is not turned by the twin: a rotation offset
+    would be recorded in the truth and be in no image, so it is refused by name."""
+    with pytest.raises(InputError, match="sample_rotation_offset.*'lambert'"):
+        vrig(rig, {"sample_rotation_offset": 3.0}, material="lambert:0.5")
+
+
 def test_surface_positions_lie_on_the_sample(rig):
     """points_mm() (the AOV render behind the LED emission pattern) gives each pixel the
     holder-frame point it sees: on the sample band, every point lies on the cylinder."""

@@ -46,6 +46,14 @@ class VirtualRig:
 
         if not (0.01 <= scale <= 1.0):
             raise InputError(f"scale must lie in [0.01, 1], got {scale}")
+        if (effects or {}).get("sample_rotation_offset") and material.kind not in ROTATING_KINDS:
+            # an isotropic BRDF is unchanged by a turn about the normal, f(R wi, R wo) = f(wi, wo): a
+            # lambert or RGL `measured` sample (the RGL data here are isotropic) is not turned by the
+            # twin at all, so the effect would be recorded in the truth but absent from every image
+            raise InputError(f"--effects sample_rotation_offset: the twin does not turn a {material.kind!r} "
+                             f"sample (it turns {' and '.join(ROTATING_KINDS)} materials); an isotropic "
+                             "sample turned about its normal gives the same images, so the effect would "
+                             "not be in the capture")
         self.rig, self.material, self.scale, self.seed, self.spp = rig, material, scale, seed, spp
         self.effects = EffectState(dict(effects or {}), seed, rig.led_ids())
         self.sensor = SensorModel.from_rig(rig)

@@ -30,7 +30,10 @@ effect, one cause of the catalogue, ``axis_step`` (answer: "unexplained" with th
 position as the variable carrying the structure) or two causes at once (PAIRS; answer: both
 among the two first causes of report.json's "ranking", :func:`glossrig.core.diagnose.report.ranking`). Magnitudes are drawn from the trial's seed in
 each cause's range (CAUSES). Captures: LEDs 6, 9, rotation 0, scale 0.25, ``--ideal``, seed
-1000 + k; twin effects by ``--effects``, rewritten ones afterwards. Then diagnose runs blind.
+1000 + k; twin effects by ``--effects``, rewritten ones afterwards. A sample rotation is not hidden
+in an isotropic real material (NOT_IN: the same BRDF turned about its normal gives the same images,
+and the twin refuses it); its slot counts by the causes it does hide (a null, or a single effect), and
+the trial records the drawn rotation as ``not_hidden``. Then diagnose runs blind.
 Budget per trial: BRDF rows capped at ``ROWS``, frame pixels at ``PIXELS``, rows of the
 geometry causes' non-linear fits at ``FIT_ROWS``. Resumable: finished trials are kept in
 WORK/trials.json; rerunning continues. After the trials, --nulls independent null captures
@@ -73,6 +76,10 @@ ROWS, PIXELS, FIT_ROWS = 12_000, 3_000, 3_000
 MATERIALS = ("sample_2_6", "satin_rosaline_rgb", "ilm_l3_37_matte_rgb")
 #: materials whose BRDF is the model diagnose fits (a null verdict other than "none" is a false alarm)
 WARD_MATERIALS = ("sample_2_6",)
+#: causes a material cannot carry: the RGL measurements are isotropic, and an isotropic BRDF turned about
+#: its normal is the same BRDF (f(R wi, R wo) = f(wi, wo)) - the twin does not turn them and refuses the
+#: effect; a slot's such cause is drawn (the other magnitudes stay as they were) but not hidden
+NOT_IN = {"sample_rotation_offset": set(MATERIALS) - set(WARD_MATERIALS)}
 # cause -> (low, high) of the drawn magnitude (the twin catalogue's unit, or rewrite_raw's), how it is hidden
 CAUSES = {"black_level_offset": (3, 15, "rewrite"), "sensor_nonlinearity": (0.01, 0.05, "rewrite"),
           "shutter_error": (2e-5, 8e-5, "rewrite"), "channel_response": (0.03, 0.06, "rewrite"),
@@ -227,17 +234,19 @@ def run_diagnose(cap: Path, out: Path, a, fit: Path, ref) -> dict:
         return {"verdict": "refused", "causes": [], "error": str(e)}
 
 
-def hide(cap: Path, material: str, seed: int, hidden: dict[str, float], null: Path) -> None:
+def hide(cap: Path, material: str, seed: int, hidden: dict[str, float], null: Path, fresh: bool = False) -> None:
     """A capture of MATERIAL with the ``hidden`` causes: the twin's ones by ``--effects`` in a
-    fresh capture (or the material's null capture when there are none), then the rewritten ones
-    one after the other (glossrig.twin.rewrite_raw)."""
+    fresh capture (or the material's null capture when there are none and not ``fresh``), then the
+    rewritten ones one after the other (glossrig.twin.rewrite_raw). ``fresh``: the slot held a twin
+    cause the material cannot carry (NOT_IN); its capture is still the fresh one at the trial's seed,
+    the capture the twin made when it ignored the cause."""
     from glossrig.twin.rewrite_raw import rewrite_capture
 
     if cap.exists():
         shutil.rmtree(cap)
     twin = {c: v for c, v in hidden.items() if CAUSES[c][2] == "twin"}
     rewrite = [(c, v) for c, v in hidden.items() if CAUSES[c][2] == "rewrite"]
-    if twin or not rewrite:
+    if twin or fresh or not rewrite:
         src = cap if not rewrite else cap.with_name(cap.name + ".twin")
         if src.exists():
             shutil.rmtree(src)
@@ -261,11 +270,13 @@ def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False, prev: di
     ``prev``: the trial's earlier record (a reused capture keeps its recorded code version)."""
     rng = np.random.default_rng([2026, k])
     material, causes = plan(k)
-    hidden = {}
+    drawn = {}
     for cause in causes:
         lo, hi, _ = CAUSES[cause]
         v = float(rng.uniform(lo, hi))
-        hidden[cause] = -v if cause in SIGNED and rng.random() < 0.5 else v
+        drawn[cause] = -v if cause in SIGNED and rng.random() < 0.5 else v
+    hidden = {c: v for c, v in drawn.items() if material not in NOT_IN.get(c, ())}
+    absent = {c: v for c, v in drawn.items() if c not in hidden}
     null, fit = bases[material]
     cap = work / f"t{k:03d}"
     t0 = time.time()
@@ -273,9 +284,9 @@ def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False, prev: di
     code = {"capture": (prev or {}).get("code", {}).get("capture") if reuse else code_version(),
             "diagnose": a.diagnose_code}
     if not reuse:
-        hide(cap, material, 1000 + k, hidden, null)
+        hide(cap, material, 1000 + k, hidden, null, fresh=any(CAUSES[c][2] == "twin" for c in absent))
     if getattr(a, "no_diagnose", False):        # the capture alone; --rediagnose diagnoses it later
-        return {"trial": k, "material": material, "hidden": hidden, "verdict": None, "ranking": [],
+        return {"trial": k, "material": material, "hidden": hidden, "not_hidden": absent, "verdict": None, "ranking": [],
                 "true_magnitude": {c: true_magnitude(c, v, cap) for c, v in hidden.items()},
                 "time_s": time.time() - t0, "code": dict(code, diagnose=None), "capture_reused": reuse}
     rep = run_diagnose(cap, work / f"t{k:03d}_report", a, fit, ref)
@@ -284,7 +295,7 @@ def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False, prev: di
     # written before it kept that order: its significant entries by effect
     sig_unexpl = [{"variable": v} for v in rep.get("unexplained_variables", [])] or sorted(
         (e for e in rep.get("unexplained", []) if e.get("significant")), key=lambda e: -e["effect"])
-    res = {"trial": k, "material": material, "hidden": hidden,
+    res = {"trial": k, "material": material, "hidden": hidden, "not_hidden": absent,
            "true_magnitude": {c: true_magnitude(c, v, cap) for c, v in hidden.items()},
            "verdict": rep["verdict"], "ranking": rep.get("ranking", []),
            "estimate": {c: by[c]["magnitude"] for c in hidden if c in by},
@@ -412,7 +423,9 @@ def summarise(trials: list[dict], work: Path | None = None) -> str:
          "capture's poses reused by every trial; sensor effects and the axis step rewritten into the DNGs "
          f"outside the twin. Budget: BRDF rows <= {ROWS}, frame pixels <= {PIXELS}, geometry-fit rows <= "
          f"{FIT_ROWS}. Trial plan: `plan(k)` (material k mod 3, slot k div 3 over {len(SLOTS)} slots: no effect, "
-         f"{len(CAUSES)} single causes, {len(PAIRS)} pairs).", "",
+         f"{len(CAUSES)} single causes, {len(PAIRS)} pairs). A cause a material cannot carry is drawn but not "
+         "hidden (`NOT_IN`: a sample rotation in the isotropic real materials, whose images it does not change); "
+         f"such a slot counts by the causes it hides ({sum(bool(t.get('not_hidden')) for t in trials)} trials).", "",
          provenance(trials), "",
          f"trials completed: {len(trials)} ({len(singles)} single effects, {len(pairs)} with two effects, "
          f"{len(nulls)} null)  ",
@@ -443,6 +456,7 @@ def summarise(trials: list[dict], work: Path | None = None) -> str:
           "|---|---|---|---|---|---|---|---|"]
     for t in sorted(trials, key=lambda t: (label(t), t["material"], t["trial"])):
         hid = ", ".join(f"{c} {t['true_magnitude'][c]:.4g}" for c in t["hidden"]) or "none"
+        hid += "".join(f" ({c} {v:.3g} drawn, not hidden: the material is isotropic)" for c, v in t.get("not_hidden", {}).items())
         est = ", ".join(f"{t['estimate'][c]:.4g}" for c in t["hidden"] if t["estimate"].get(c) is not None)
         g = ", ".join(f"{t['gain'][c]:.2%}{'*' if t['significant'][c] else ''}" for c in t["hidden"] if c in t["gain"])
         v = t["verdict"] + (f" ({t['unexplained_variable']})" if t["verdict"] == "unexplained" else "")
