@@ -193,6 +193,15 @@ def synthetic_brdf(seed, effect=None, value=0.0, scale=0.125, leds=(6, 9), noise
     return data, ward
 
 
+def fitted_brdf(seed, effect=None, value=0.0):
+    """(model, BRDF-space causes fitted on it) of :func:`synthetic_brdf`'s capture."""
+    from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes
+
+    data, ward = synthetic_brdf(seed, effect, value)
+    m = BrdfModel.build(data, ward)
+    return m, brdf_causes(m)
+
+
 def brdf_winner(seed, effect=None, value=0.0):
     from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes
 

@@ -14,7 +14,7 @@ from glossrig.core.diagnose.catalogue import vignetting_factor
 from glossrig.core.diagnose.white_patch import (PATCH_GAIN, apply_emission_evidence, apply_patch_evidence,
                                                emission_evidence, patch_evidence, patch_points)
 
-from test_diagnose import synthetic_brdf
+from test_diagnose import fitted_brdf
 
 SIZE, PP = (1508, 1008), (754.7, 503.4)     # the thesis rig's camera at scale 0.25
 REL_NOISE = 0.005                           # each rate's relative noise (HDR of a bright white patch)
@@ -104,11 +104,7 @@ def test_a_hot_pixel_in_the_patch_is_left_out():
 @pytest.fixture(scope="module")
 def vignetted_brdf():
     """A Ward capture with vignetting 0.2, its BRDF-space causes fitted."""
-    from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes
-
-    data, ward = synthetic_brdf(41, "vignetting", 0.2)
-    m = BrdfModel.build(data, ward)
-    return m, brdf_causes(m)
+    return fitted_brdf(41, "vignetting", 0.2)
 
 
 def _patch_units_for(m, k, seed):
@@ -220,11 +216,7 @@ def emission_units(data, seed, n=0.0, k=0.0, es_seed=None):
 @pytest.fixture(scope="module")
 def emission_brdf():
     """A Ward capture whose LEDs emit as cos^15 about their (tilted) axes, its BRDF-space causes fitted."""
-    from glossrig.core.diagnose.catalogue import BrdfModel, brdf_causes
-
-    data, ward = synthetic_brdf(44, "led_emission", 15.0)
-    m = BrdfModel.build(data, ward)
-    return m, brdf_causes(m)
+    return fitted_brdf(44, "led_emission", 15.0)
 
 
 def test_patch_measures_the_emission_pattern(emission_brdf):

@@ -32,6 +32,8 @@ from glossrig.core.diagnose.frames import FrameStage, frame_stage
 from glossrig.core.diagnose.report import verdict, write_report
 from glossrig.core.diagnose.residuals import brdf_structure
 from glossrig.core.diagnose.stray_light import apply_frame_evidence, frame_evidence
+from glossrig.core.rig import load_rig
+from glossrig.core.diagnose.silhouette import apply_silhouette_evidence, limb_rates, silhouette_evidence
 from glossrig.core.diagnose.white_patch import (apply_emission_evidence, apply_patch_evidence, emission_evidence,
                                                 patch_evidence, patch_points, patch_rates)
 from glossrig.core.diagnose.unexplained import retested_cause, unexplained
@@ -140,12 +142,17 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     # the white patch in both captures (vignetting's signature, white_patch.py): its raws read in a third process
     patch_args = (str(sample_dir), str(reference_dir), data.measured.geometry, data.reference_geometry or {})
     pw = InWorker(patch_rates, *patch_args) if store is None or not store.has("patch_rates") else None
+    # the sample's outline in its own frames (the sample radius's signature, silhouette.py): read after the
+    # BRDF-space causes (a box around the sample, 0.5-3 s for two to eight LEDs)
     with bg if bg is not None else contextlib.nullcontext(), pw if pw is not None else contextlib.nullcontext():
         causes = stage("brdf_causes", lambda: brdf_causes(m, log=log))
         log(f"BRDF-space causes done{'; waiting for the frame-space causes' if bg is not None else ''} ({took()})")
         fcauses, fstructure, veil = stage("frame_stage", lambda: bg.result() if bg is not None
                                           else frame_stage(sample_dir, data.measured, log=log))
         units = stage("patch_rates", lambda: pw.result() if pw is not None else patch_rates(*patch_args))
+    camera = data.camera
+    limbs = (stage("limb_rates", lambda: limb_rates(str(sample_dir), data.measured.geometry, camera))
+             if camera is not None else [])
     # stray light judged by the frames' dark pixels: refuted where they are darker than its veil,
     # named through its frame-space signature where they carry it (stray_light.py)
     stray = frame_evidence(veil, t, data.lamps)
@@ -164,6 +171,15 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
                              emission)
         apply_emission_evidence(model_of(m, next((c for c in causes if c.name == "led_emission"), None)), causes,
                                 emission)
+    rig_s = load_rig(data.measured.rig_path)
+    outline = (silhouette_evidence(limbs, data.measured.geometry, data.camera, rig_s.cylinder_radius,
+                                   rig_s.sample_height, data.lamps) if data.camera is not None else None)
+    with one_blas_thread():
+        apply_silhouette_evidence(model_of(m, next((c for c in causes if c.name == "sample_radius_error"), None)),
+                                  causes, outline)
+    if outline is not None:
+        log(f"sample radius from the outline: dr = {outline['dr']:+.3g} +- {outline['se']:.2g} mm"
+            f"{'' if outline['significant'] else ' (no signature: ' + str(outline['why_not']) + ')'}")
     for what, ev, p in (("vignetting", vig, "k"), ("an LED emission pattern", emission, "n")):
         if ev is not None:
             log(f"{what} in the white patch (sample against reference): {p} = {ev[p]:.3g} +- {ev['se']:.2g}, "
@@ -178,7 +194,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
             "fit": str(fit) if fit else None, "fit_check": fit_check, "material": w.as_dict(),
             "material_from_capture": fit is None,
             "stray_light_frames": stray,
-            "vignetting_patch": vig, "led_emission_patch": emission,
+            "vignetting_patch": vig, "led_emission_patch": emission, "sample_radius_silhouette": outline,
             "n_brdf_rows": int(len(m.rows)), "leds": sorted(int(x) for x in np.unique(t.led)),
             "missing_channels": m.channel_fill, "reference_calibration": cal or {"applied": False},
             "splits": {"brdf": "leave one LED out (per-LED parameters or one LED: the two halves of the pixel rows)",

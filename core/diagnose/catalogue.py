@@ -699,6 +699,24 @@ def fixed_term_test(m: BrdfModel, basis, factor=None, offset=None) -> tuple[floa
     return float(np.mean(r0 ** 2)), float(np.mean(r1 ** 2)), per_led, pv
 
 
+def fixed_made_test(m: BrdfModel, base: tuple, fixed: tuple) -> tuple[float, float, list[float], np.ndarray]:
+    """:func:`fixed_term_test` for a term that moves the lobe across rows: ``base`` and ``fixed`` are a
+    scalar cause's ``make(p)`` at no effect and at the size measured outside these rows (basis, factor,
+    slope), each solved on all rows and scored with the sigma that follows the lobe
+    (:func:`_fit_and_errors`, as the cause's own fit is) - a sample radius measured on the cylinder's
+    outline (:mod:`.silhouette`). Returns (base error, error, the relative gain on each LED's rows,
+    prediction)."""
+    allr = np.ones(len(m.cols["y"]), bool)
+    _, err0 = _fit_and_errors(m, base, allr)
+    pred, err1 = _fit_and_errors(m, fixed, allr)
+    per_led = []
+    for led in np.unique(m.cols["led"]):
+        k = m.cols["led"] == led
+        e0, e1 = err0(k), err1(k)
+        per_led.append((e0 - e1) / e0 if e0 > 0 else 0.0)
+    return err0(allr), err1(allr), per_led, pred
+
+
 def vignetting_q(m: BrdfModel) -> tuple[np.ndarray, np.ndarray]:
     """:func:`vignetting_factor` at every row's block centre and at its rotation's white-patch centre: a
     vignetted sample capture carries ``(1 - k q) / (1 - k q_patch)`` on every value (the patch normalisation)."""

@@ -80,14 +80,14 @@ from pathlib import Path
 
 import numpy as np
 
-from glossrig.core.diagnose.catalogue import (GAIN_THRESHOLD, CauseResult, THRESHOLDS, consistent_folds,
-                                              fixed_term_test, one_value, vignetting_factor, vignetting_q)
+from glossrig.core.diagnose.catalogue import (CauseResult, THRESHOLDS, consistent_folds, one_value,
+                                              vignetting_factor, vignetting_q)
+from glossrig.core.diagnose.witness import BOUND_Z, refute, take_witness_test
 
 OUTLIER_Z = 5.0      # pixels beyond this many robust sigmas of the k = 0 fit are left out (hot pixels, edges)
 #: held-out chi^2 gain the patch's tilt must exceed: the pixel space's threshold (null captures' patch fits
 #: gain below it, validation/diagnose/blind_study.md), one parameter's penalty included
 PATCH_GAIN = THRESHOLDS["pixels"][0] + THRESHOLDS["pixels"][1]
-BOUND_Z = 3.0        # a BRDF-space k this many combined standard errors from the patch's refutes it
 TANGENTIAL_Z = 5.0   # a gradient across the radius beyond this many standard errors: the tilt is no vignetting
 K_RANGE = (-0.5, 0.9)  # the BRDF-space vignetting cause's search range (catalogue.instrument_causes)
 
@@ -279,49 +279,6 @@ def patch_evidence(units: list[dict], size, pp) -> dict | None:
             "unit": "relative fall-off at the corner (as the BRDF-space vignetting cause's k)"}
 
 
-def _take_patch_test(c: CauseResult, m, ev: dict, pname: str, value: float, factor, extra: dict, note: str) -> bool:
-    """Where the BRDF data do not contradict the patch's estimate - the model ``m`` with the cause's
-    ``factor`` at that estimate held fixed raises the error of the pooled rows by less than the BRDF
-    space's threshold GAIN_THRESHOLD, the least change it tells from a null capture's spread
-    (:func:`~glossrig.core.diagnose.catalogue.fixed_term_test`, its gains recorded; measured: on the
-    eight-LED satin capture with a vignetting of 0.135, read 0.137 +- 0.002 on the patch, the
-    material's flexible columns had taken the fall-off up and k held at the patch's value raised the
-    error by 0.24 %, while a pattern the rows do not have raises it 35- to 500-fold,
-    tests/test_white_patch.py) - the BRDF-space cause ``c`` takes the patch's test, in place: its value, standard
-    error, held-out gains and ``frame_signature`` (the free BRDF-space estimate kept as ``<pname>_brdf``).
-    Returns whether it did.
-
-    Where the BRDF-space cause is significant by itself and its free estimate agrees with the patch's
-    (within BOUND_Z combined standard errors), its own fit is kept and the patch only confirms it
-    (``frame_signature``, ``confirmed_by``): fitted on the sample's rows it predicts them better than
-    the patch's estimate carried over (measured on the blind study's Ward capture with an emission
-    pattern of n = 24.9: the BRDF fit reads 24.7, the patch 22.3 +- 1.8, and with the patch's n held the
-    rows kept a structure along the axis that the open-world test called unexplained)."""
-    value_b = float(c.params.get(pname, float("nan")))
-    se_b = float(c.stderr.get(pname, float("nan")) or float("nan")) if isinstance(c.stderr, dict) else float("nan")
-    if c.significant and np.isfinite(value_b) and abs(value_b - value) <= BOUND_Z * math.hypot(
-            ev["se"], se_b if np.isfinite(se_b) else 0.0):
-        c.frame_signature = True
-        c.params["confirmed_by"] = "patch"
-        c.note = (c.note + "; " if c.note else "") + (
-            f"the white patch agrees ({pname} = {value:.3g} +- {ev['se']:.2g} there, held-out gain {ev['gain']:.1%})")
-        return True
-    e0, e1, led_gains, pred = fixed_term_test(m, [m.diffuse(), m.cols["L"]], factor=factor)
-    c.params["fixed_brdf_gain"] = gain = (e0 - e1) / e0 if e0 > 0 else 0.0
-    c.params["fixed_brdf_led_gains"] = led_gains
-    if not gain > -GAIN_THRESHOLD:
-        return False
-    c.params.update({f"{pname}_brdf": c.params.get(pname), pname: value, "fixed_by": "patch", **extra})
-    if isinstance(c.stderr, dict):
-        c.stderr[pname] = ev["se"]
-    c.base_error, c.error, c.fold_gains = 1.0, 1.0 - ev["gain"], ev["fold_gains"]
-    c.prediction, c.magnitude = pred, value
-    c.params["free_fit_robust"], c.robust = c.robust, None
-    c.identifiable, c.frame_signature = True, True
-    c.note = note
-    return True
-
-
 def apply_patch_evidence(m, causes: list[CauseResult], ev: dict | None, emission: dict | None = None) -> None:
     """Judge the BRDF-space ``vignetting`` cause by the white patch (module docstring), in place;
     ``m``: the model the cause was fitted on (:func:`glossrig.core.diagnose.catalogue.model_of`).
@@ -342,13 +299,12 @@ def apply_patch_evidence(m, causes: list[CauseResult], ev: dict | None, emission
         note = (f"white-patch signature: the patch, the same surface in the sample and reference captures, is tilted "
                 f"between them as 1 - k q with k = {ev['k']:.3g} +- {ev['se']:.2g} under every LED (held-out gain "
                 f"{ev['gain']:.1%}; no material acts there); the BRDF data do not contradict it (free BRDF-space fit: k = {k_b:.3g})")
-        if _take_patch_test(c, m, ev, "k", ev["k"], (1 - ev["k"] * q) / (1 - ev["k"] * qp), {}, note):
+        if take_witness_test(c, m, ev, "k", ev["k"], (1 - ev["k"] * q) / (1 - ev["k"] * qp), {}, note, "patch"):
             return
     if (np.isfinite(k_b) and c.significant
             and abs(k_b - ev["k"]) > BOUND_Z * math.hypot(ev["se"], se_b) and abs(ev["k"]) < BOUND_Z * ev["se"]):
-        c.refuted = (f"the white patch refutes it: seen in both captures it shows no vignetting between them "
-                     f"(k = {ev['k']:.2g} +- {ev['se']:.2g}), the BRDF-space fit needs k = {k_b:.3g}")
-        c.note = (c.note + "; " if c.note else "") + c.refuted
+        refute(c, f"the white patch refutes it: seen in both captures it shows no vignetting between them "
+                  f"(k = {ev['k']:.2g} +- {ev['se']:.2g}), the BRDF-space fit needs k = {k_b:.3g}")
 
 
 # ------------------------------------------------------------------ the LED emission pattern
@@ -539,7 +495,7 @@ def apply_emission_evidence(m, causes: list[CauseResult], ev: dict | None) -> No
     """Judge the BRDF-space ``led_emission`` cause by the white patch (module docstring), in place; ``m``:
     the model the cause was fitted on (:func:`glossrig.core.diagnose.catalogue.model_of`). A significant
     pattern on the patch names the cause with the patch's n and tilts where the BRDF data do not
-    contradict it (:func:`_take_patch_test`) - the BRDF model with that pattern held fixed
+    contradict it (:func:`glossrig.core.diagnose.witness.take_witness_test`) - the BRDF model with that pattern held fixed
     (:meth:`glossrig.core.diagnose.geometry.Geometry.evaluate`: on the sample and, through the patch
     normalisation, on the patch; nothing of it fitted to the rows). A patch that shows no pattern (n within EMISSION_Z standard errors of 0)
     refutes a BRDF-space n more than BOUND_Z combined standard errors away."""
@@ -558,11 +514,10 @@ def apply_emission_evidence(m, causes: list[CauseResult], ev: dict | None) -> No
                 f"between them as an LED emission pattern cos^n with n = {ev['n']:.3g} +- {ev['se']:.2g} (held-out "
                 f"gain {ev['gain']:.1%} over no change and over vignetting; no material acts there); the BRDF data "
                 f"do not contradict it (free BRDF-space fit: n = {n_b:.3g})")
-        if _take_patch_test(c, m, ev, "n", ev["n"], F, {"tilt_deg": ev["tilt_deg"]}, note):
+        if take_witness_test(c, m, ev, "n", ev["n"], F, {"tilt_deg": ev["tilt_deg"]}, note, "patch"):
             return
     if (np.isfinite(n_b) and np.isfinite(se_b) and c.significant and ev["n"] < EMISSION_Z * ev["se"]
             and abs(n_b - ev["n"]) > BOUND_Z * math.hypot(ev["se"], se_b)):
-        c.refuted = (f"the white patch refutes it: seen in both captures it shows no change of the LEDs' emission "
-                     f"pattern between them (n = {ev['n']:.2g} +- {ev['se']:.2g}), the BRDF-space fit needs "
-                     f"n = {n_b:.3g}")
-        c.note = (c.note + "; " if c.note else "") + c.refuted
+        refute(c, f"the white patch refutes it: seen in both captures it shows no change of the LEDs' emission "
+                  f"pattern between them (n = {ev['n']:.2g} +- {ev['se']:.2g}), the BRDF-space fit needs "
+                  f"n = {n_b:.3g}")
