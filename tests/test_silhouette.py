@@ -83,6 +83,33 @@ def test_outline_measures_the_sample_radius(dr, seed):
     json.dumps(ev)                                   # report.json can hold it
 
 
+def test_a_camera_turned_by_a_quarter_scans_the_rows():
+    """The same rig seen by a camera turned 90 degrees about its optical axis: the cylinder's axis runs
+    along the image's v, the limbs along its rows (``transposed``), and the radius is measured alike."""
+    rig, geom, (K, _), (w, h) = thesis_geometry(0.25)
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])      # x' = -y, y' = x
+    turned = SimpleNamespace(R_hold=turn @ geom.R_hold, t_hold=turn @ geom.t_hold, R_cyl=geom.R_cyl,
+                             t_cyl=geom.t_cyl)
+    K2 = np.array([[K[1, 1], 0.0, h - 1 - K[1, 2]], [0.0, K[0, 0], K[0, 2]], [0.0, 0.0, 1.0]])
+    cam = (K2, np.zeros(5))
+    units = outline_units(rig, turned, cam, (h, w), 0.5, 9)
+    assert units[0]["transposed"]
+    ev = silhouette_evidence(units, {0.0: turned}, cam, rig.cylinder_radius, rig.sample_height, lamps_of(rig))
+    assert ev["significant"], ev["why_not"]
+    assert abs(ev["dr"] - 0.5) < 4 * ev["se"], (ev["dr"], ev["se"])
+
+
+def test_report_md_says_what_the_outline_measured():
+    from glossrig.core.diagnose.report import _witness_lines
+
+    rig, geom, cam, size = thesis_geometry(0.25)
+    ev = silhouette_evidence(outline_units(rig, geom, cam, size, 0.6, 10), {0.0: geom}, cam,
+                             rig.cylinder_radius, rig.sample_height, lamps_of(rig))
+    text = "\n".join(_witness_lines({"sample_radius_silhouette": ev, "vignetting_patch": None}))
+    assert f"dr = {ev['dr']:.3g} +- {ev['se']:.2g} mm" in text and "no material produces" in text
+    assert "white patch" not in text
+
+
 def test_the_nominal_radius_is_no_signature():
     rig, geom, cam, size = thesis_geometry(0.25)
     for seed in (3, 4, 5):

@@ -172,6 +172,25 @@ def _stray_frames_lines(ev: dict | None) -> list[str]:
             "where it is significant and the BRDF data agree with it, it is stray light's frame-space signature."]
 
 
+def _witness_lines(meta: dict) -> list[str]:
+    """report.md's lines on what the witnesses outside the BRDF rows measured: the white patch in both
+    captures (``meta.vignetting_patch``, ``meta.led_emission_patch``, :mod:`.white_patch`) and the
+    sample's outline (``meta.sample_radius_silhouette``, :mod:`.silhouette`); none where not measured."""
+    L = []
+    for key, what, p, unit in (("vignetting_patch", "vignetting between the sample and reference captures", "k", ""),
+                               ("led_emission_patch", "a changed LED emission pattern", "n", ""),
+                               ("sample_radius_silhouette", "the sample radius's departure from the rig file's",
+                                "dr", " mm")):
+        ev = meta.get(key)
+        if not ev:
+            continue
+        where = "the sample's outline" if key == "sample_radius_silhouette" else "the white patch"
+        L += ["", f"{where[0].upper() + where[1:]} measures {what}: {p} = {ev[p]:.3g} +- {ev['se']:.2g}{unit}, "
+              + ("a signature no material produces." if ev.get("significant")
+                 else f"no signature ({ev.get('why_not') or 'not significant'}).")]
+    return L
+
+
 def _num(x):
     if isinstance(x, dict):
         return {k: _num(v) for k, v in x.items()}
@@ -255,6 +274,7 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
                  f"+- {json.dumps(_num(w.stderr))} (statistical only - noise or fold spread; excludes calibration "
                  "and model error, so not the parameters' full uncertainty).")
     L += _stray_frames_lines(meta.get("stray_light_frames"))
+    L += _witness_lines(meta)
     if calibration:
         L += ["", f"Calibrated error model: base model's normalised held-out error "
               f"{calibration.get('heldout_error', float('nan')):.3g} (noise alone "
