@@ -33,6 +33,7 @@ from glossrig.core.diagnose.report import verdict, write_report
 from glossrig.core.diagnose.residuals import brdf_structure
 from glossrig.core.diagnose.stray_light import apply_frame_evidence, frame_evidence
 from glossrig.core.rig import load_rig
+from glossrig.core.diagnose.marker_band import apply_band_evidence, band_evidence, band_rates, bending_causes
 from glossrig.core.diagnose.silhouette import apply_silhouette_evidence, limb_rates, silhouette_evidence
 from glossrig.core.diagnose.white_patch import (apply_emission_evidence, apply_patch_evidence, emission_evidence,
                                                 patch_evidence, patch_points, patch_rates)
@@ -153,6 +154,9 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     camera = data.camera
     limbs = (stage("limb_rates", lambda: limb_rates(str(sample_dir), data.measured.geometry, camera))
              if camera is not None else [])
+    # the white marker band on the cylinder in both captures (the LED positions' signature, marker_band.py)
+    band = (stage("band_rates", lambda: band_rates(str(sample_dir), str(reference_dir), data.measured.geometry,
+                                                  camera)) if camera is not None else [])
     # stray light judged by the frames' dark pixels: refuted where they are darker than its veil,
     # named through its frame-space signature where they carry it (stray_light.py)
     stray = frame_evidence(veil, t, data.lamps)
@@ -177,6 +181,13 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     with one_blas_thread():
         apply_silhouette_evidence(model_of(m, next((c for c in causes if c.name == "sample_radius_error"), None)),
                                   causes, outline)
+    moved = band_evidence(band, data.lamps, bending_causes(fcauses, stray, vig, emission))
+    with one_blas_thread():
+        apply_band_evidence(model_of(m, next((c for c in causes if c.name == "led_position_error"), None)), causes,
+                            moved)
+    if moved is not None:
+        log(f"LED positions from the marker band: RMS move {moved['magnitude']:.3g} +- {moved['se']:.2g} mm"
+            f"{'' if moved['significant'] else ' (no signature: ' + str(moved['why_not']) + ')'}")
     if outline is not None:
         log(f"sample radius from the outline: dr = {outline['dr']:+.3g} +- {outline['se']:.2g} mm"
             f"{'' if outline['significant'] else ' (no signature: ' + str(outline['why_not']) + ')'}")
@@ -195,6 +206,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
             "material_from_capture": fit is None,
             "stray_light_frames": stray,
             "vignetting_patch": vig, "led_emission_patch": emission, "sample_radius_silhouette": outline,
+            "led_position_band": moved,
             "n_brdf_rows": int(len(m.rows)), "leds": sorted(int(x) for x in np.unique(t.led)),
             "missing_channels": m.channel_fill, "reference_calibration": cal or {"applied": False},
             "splits": {"brdf": "leave one LED out (per-LED parameters or one LED: the two halves of the pixel rows)",

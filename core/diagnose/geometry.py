@@ -120,6 +120,21 @@ class Geometry:
             nrm[sel[hit]] = s.normals[j]
         return pts, nrm
 
+    def held_test(self, **perturbation):
+        """The BRDF rows with a geometry change measured outside them held fixed (``perturbation``: the
+        keywords of :meth:`evaluate`), the lobe re-evaluated at the changed angles and scored as the
+        BRDF-space geometry causes are fitted, with the sigma that follows the lobe (a model without the
+        lobe's slope: its own sigma): :func:`~glossrig.core.diagnose.catalogue.fixed_made_test`'s four
+        results. The witnesses of the sample radius and the LED positions test the rows so."""
+        from glossrig.core.diagnose.catalogue import fixed_made_test
+
+        m = self.m
+        one = m.diffuse()
+        L, F, dL = self.evaluate(np.arange(len(m.rows)), **perturbation)
+        if "dL" not in m.cols:
+            return fixed_made_test(m, ([one, m.cols["L"]], None), ([one, L], F))
+        return fixed_made_test(m, ([one, m.cols["L"]], None, m.cols["dL"]), ([one, L], F, dL))
+
     def evaluate(self, rows, offsets=None, dr=0.0, em=None):
         """(L, F, dL) of ``rows``: the lobe at the perturbed angles, the irradiance factor and the lobe's
         slope along theta_h there (the error model's slope feature: a cause that moves the lobe is scored

@@ -174,17 +174,21 @@ def _stray_frames_lines(ev: dict | None) -> list[str]:
 
 def _witness_lines(meta: dict) -> list[str]:
     """report.md's lines on what the witnesses outside the BRDF rows measured: the white patch in both
-    captures (``meta.vignetting_patch``, ``meta.led_emission_patch``, :mod:`.white_patch`) and the
-    sample's outline (``meta.sample_radius_silhouette``, :mod:`.silhouette`); none where not measured."""
+    captures (``meta.vignetting_patch``, ``meta.led_emission_patch``, :mod:`.white_patch`), the sample's
+    outline (``meta.sample_radius_silhouette``, :mod:`.silhouette`) and the marker band in both captures
+    (``meta.led_position_band``, :mod:`.marker_band`); none where not measured."""
     L = []
     for key, what, p, unit in (("vignetting_patch", "vignetting between the sample and reference captures", "k", ""),
                                ("led_emission_patch", "a changed LED emission pattern", "n", ""),
                                ("sample_radius_silhouette", "the sample radius's departure from the rig file's",
-                                "dr", " mm")):
+                                "dr", " mm"),
+                               ("led_position_band", "the LEDs' moves since the reference capture (RMS per axis)",
+                                "magnitude", " mm")):
         ev = meta.get(key)
-        if not ev:
+        if not ev or not np.isfinite(ev.get(p, float("nan"))):
             continue
-        where = "the sample's outline" if key == "sample_radius_silhouette" else "the white patch"
+        where = {"sample_radius_silhouette": "the sample's outline",
+                 "led_position_band": "the cylinder's white marker band"}.get(key, "the white patch")
         L += ["", f"{where[0].upper() + where[1:]} measures {what}: {p} = {ev[p]:.3g} +- {ev['se']:.2g}{unit}, "
               + ("a signature no material produces." if ev.get("significant")
                  else f"no signature ({ev.get('why_not') or 'not significant'}).")]

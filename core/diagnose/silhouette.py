@@ -66,8 +66,8 @@ from pathlib import Path
 
 import numpy as np
 
-from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD, CauseResult, consistent_folds, fixed_made_test
-from glossrig.core.diagnose.witness import BOUND_Z, refute, take_witness_test
+from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD, CauseResult, consistent_folds
+from glossrig.core.diagnose.witness import BOUND_Z, brdf_cause, refute, take_witness_test
 
 EDGE_PX = 0.25       # the limb's model error, pixels (module docstring)
 COS_MIN = 0.5        # a limb counts under an LED with cos(theta_in) at least this at the limb point
@@ -305,7 +305,7 @@ def apply_silhouette_evidence(m, causes: list[CauseResult], ev: dict | None) -> 
     ``m``: the model the cause was fitted on (:func:`glossrig.core.diagnose.catalogue.model_of`)."""
     from glossrig.core.diagnose.geometry import Geometry
 
-    c = next((x for x in causes if x.name == "sample_radius_error" and x.space == "brdf"), None)
+    c = brdf_cause(causes, "sample_radius_error")
     if c is None or ev is None:
         return
     dr_b = float(c.params.get("dr_mm", float("nan")))
@@ -314,12 +314,7 @@ def apply_silhouette_evidence(m, causes: list[CauseResult], ev: dict | None) -> 
         k: ev[k] for k in ("gain", "fold_gains", "limbs", "disagreement_z", "significant", "why_not")}})
     if ev["significant"]:
         def test():
-            # scored as the BRDF-space radius is fitted: the lobe moved, with the sigma that follows it
-            one, rows = m.diffuse(), np.arange(len(m.rows))
-            L, F, dL = Geometry(m).evaluate(rows, dr=ev["dr"])
-            if "dL" not in m.cols:              # a model without the lobe's slope: scored with its own sigma
-                return fixed_made_test(m, ([one, m.cols["L"]], None), ([one, L], F))
-            return fixed_made_test(m, ([one, m.cols["L"]], None, m.cols["dL"]), ([one, L], F, dL))
+            return Geometry(m).held_test(dr=ev["dr"])
         note = (f"silhouette signature: the sample's outline in its own frames lies where a cylinder of radius "
                 f"{ev['dr']:+.3g} +- {ev['se']:.2g} mm from the rig file's grazes the rays (limbs lit by "
                 f"{len(ev['limbs'])} LED(s); no material moves an outline; free BRDF-space fit: dr = {dr_b:.3g} mm)")

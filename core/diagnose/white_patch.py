@@ -82,7 +82,7 @@ import numpy as np
 
 from glossrig.core.diagnose.catalogue import (CauseResult, THRESHOLDS, consistent_folds, one_value,
                                               vignetting_factor, vignetting_q)
-from glossrig.core.diagnose.witness import BOUND_Z, refute, take_witness_test
+from glossrig.core.diagnose.witness import BOUND_Z, brdf_cause, pair_rates, refute, single_leds, take_witness_test
 
 OUTLIER_Z = 5.0      # pixels beyond this many robust sigmas of the k = 0 fit are left out (hot pixels, edges)
 #: held-out chi^2 gain the patch's tilt must exceed: the pixel space's threshold (null captures' patch fits
@@ -117,7 +117,6 @@ def patch_rates(sample_dir, reference_dir, sample_geometry: dict, reference_geom
     variances ``vs``, ``vr`` of the pixels in both patch masks with a valid rate in both."""
     from glossrig.core.capture import load_manifest
     from glossrig.core.calibration.demosaic import channel_index
-    from glossrig.core.extraction.extract import led_rate, led_sequence
     from glossrig.core.rig import load_rig
 
     ms, mr = load_manifest(Path(sample_dir)), load_manifest(Path(reference_dir))
@@ -129,14 +128,11 @@ def patch_rates(sample_dir, reference_dir, sample_geometry: dict, reference_geom
             continue
         box = patch_box(gs)
         mask = _mask_in(gs, box) & _mask_in(gr, box)
-        leds = sorted({im.leds[0] for im in ms.images if im.role == "sequence" and im.rotation == rot
-                       and len(im.leds) == 1})
-        for led in leds:
-            seq_s, seq_r = led_sequence(ms, rot, led), led_sequence(mr, rot, led)
-            if not seq_s or not seq_r:
+        for led in single_leds(ms, rot):
+            rates = pair_rates(ms, mr, rig_s, rig_r, rot, led, box)
+            if rates is None:
                 continue
-            rs, vs, sts, cfa, _ = led_rate(ms, rig_s, seq_s, box)
-            rr, vr, _, _, _ = led_rate(mr, rig_r, seq_r, box)
+            rs, vs, rr, vr, cfa = rates
             ok = mask & np.isfinite(rs) & np.isfinite(rr) & (rs > 0) & (rr > 0) & np.isfinite(vs) & np.isfinite(vr)
             ii, jj = np.nonzero(ok)
             col = channel_index(rs.shape, cfa)
@@ -284,7 +280,7 @@ def apply_patch_evidence(m, causes: list[CauseResult], ev: dict | None, emission
     ``m``: the model the cause was fitted on (:func:`glossrig.core.diagnose.catalogue.model_of`).
     ``emission``: the patch's :func:`emission_evidence`; where it is significant the patch's tilt is an
     LED's, which also tilts it radially, so the patch names no vignetting."""
-    c = next((x for x in causes if x.name == "vignetting" and x.space == "brdf"), None)
+    c = brdf_cause(causes, "vignetting")
     if c is None or ev is None:
         return
     if emission is not None and emission["significant"] and ev["significant"]:
@@ -501,7 +497,7 @@ def apply_emission_evidence(m, causes: list[CauseResult], ev: dict | None) -> No
     refutes a BRDF-space n more than BOUND_Z combined standard errors away."""
     from glossrig.core.diagnose.geometry import Geometry
 
-    c = next((x for x in causes if x.name == "led_emission" and x.space == "brdf"), None)
+    c = brdf_cause(causes, "led_emission")
     if c is None or ev is None:
         return
     n_b = float(c.params.get("n", float("nan")))

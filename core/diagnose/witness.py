@@ -73,6 +73,32 @@ def take_witness_test(c: CauseResult, m, ev: dict, pname: str, value: float, fac
     return True
 
 
+def pair_rates(ms, mr, rig_s, rig_r, rotation: float, led: int, box):
+    """Both captures' HDR rates of one LED over ``box`` (full image x0, y0, x1, y1; the pipeline's own HDR,
+    :func:`glossrig.core.extraction.extract.led_rate`): (rs, vs, rr, vr, cfa) of the sample capture ``ms``
+    and the reference capture ``mr`` (manifests; ``rig_s``, ``rig_r`` their rigs), None where either lacks
+    the LED's sequence at ``rotation``. The witnesses that compare the captures read through it."""
+    from glossrig.core.extraction.extract import led_rate, led_sequence
+
+    seq_s, seq_r = led_sequence(ms, rotation, led), led_sequence(mr, rotation, led)
+    if not seq_s or not seq_r:
+        return None
+    rs, vs, _, cfa, _ = led_rate(ms, rig_s, seq_s, box)
+    rr, vr, _, _, _ = led_rate(mr, rig_r, seq_r, box)
+    return rs, vs, rr, vr, cfa
+
+
+def single_leds(man, rotation: float) -> list[int]:
+    """The LEDs with a sequence of their own at ``rotation`` in a capture's manifest."""
+    return sorted({im.leds[0] for im in man.images if im.role == "sequence" and im.rotation == rotation
+                   and len(im.leds) == 1})
+
+
+def brdf_cause(causes: list[CauseResult], name: str) -> CauseResult | None:
+    """The BRDF-space cause ``name`` among ``causes`` (the one a witness judges), None where not fitted."""
+    return next((x for x in causes if x.name == name and x.space == "brdf"), None)
+
+
 def refute(c: CauseResult, why: str) -> None:
     """Mark the BRDF-space cause ``c`` refuted by a witness (not significant), saying ``why`` in its note."""
     c.refuted = why
