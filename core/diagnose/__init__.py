@@ -8,8 +8,12 @@ scores it on held-out folds (split by LED or by exposure, never by random
 pixels) and names the winner, or "none" when no cause beats the stated
 threshold. The BRDF-space ``stray_light`` cause is judged by the frames' dark pixels
 (:mod:`.stray_light`: refuted where they are darker than its veil, named through their
-frame-space signature where they carry it); the BRDF-space ``vignetting`` cause by the marker's
-white patch, the same surface in the sample and reference captures (:mod:`.white_patch`).
+frame-space signature where they carry it); the BRDF-space ``vignetting`` and ``led_emission``
+causes by the marker's white patch, the same surface in the sample and reference captures
+(:mod:`.white_patch`); ``sample_radius_error`` by the sample's outline in its own frames
+(:mod:`.silhouette`); ``led_position_error`` by the cylinder's white marker band in both captures
+(:mod:`.marker_band`). Each witness measures its cause where no material acts and judges the
+BRDF-space cause by one rule (:mod:`.witness`).
 :mod:`.report` writes report.json and report.md. With the reference's own BRDF
 the measured table is first renormalised with it - a calibration step that is applied and
 reported (``meta.reference_calibration``), not a cause (issue 14, item 4).

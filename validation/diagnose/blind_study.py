@@ -263,11 +263,10 @@ def hide(cap: Path, material: str, seed: int, hidden: dict[str, float], null: Pa
         src = dst
 
 
-def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False, prev: dict | None = None) -> dict:
-    """Trial k (``plan(k)``, magnitudes from the seed [2026, k]): the capture with its hidden causes,
-    then diagnose. ``reuse``: diagnose the capture already in WORK/tNNN (its raws kept by
-    ``--keep-raws``) instead of making it again; the same seed makes the same capture either way.
-    ``prev``: the trial's earlier record (a reused capture keeps its recorded code version)."""
+def draw(k: int) -> tuple[str, dict[str, float], dict[str, float]]:
+    """Trial k's material, the causes hidden in its capture with their magnitudes (drawn from the seed
+    [2026, k] in each cause's range, signed ones with a random sign), and the drawn causes its material
+    cannot carry (NOT_IN; drawn all the same, so that the other magnitudes are those of every run)."""
     rng = np.random.default_rng([2026, k])
     material, causes = plan(k)
     drawn = {}
@@ -276,7 +275,15 @@ def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False, prev: di
         v = float(rng.uniform(lo, hi))
         drawn[cause] = -v if cause in SIGNED and rng.random() < 0.5 else v
     hidden = {c: v for c, v in drawn.items() if material not in NOT_IN.get(c, ())}
-    absent = {c: v for c, v in drawn.items() if c not in hidden}
+    return material, hidden, {c: v for c, v in drawn.items() if c not in hidden}
+
+
+def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False, prev: dict | None = None) -> dict:
+    """Trial k (``plan(k)``, magnitudes from the seed [2026, k]): the capture with its hidden causes,
+    then diagnose. ``reuse``: diagnose the capture already in WORK/tNNN (its raws kept by
+    ``--keep-raws``) instead of making it again; the same seed makes the same capture either way.
+    ``prev``: the trial's earlier record (a reused capture keeps its recorded code version)."""
+    material, hidden, absent = draw(k)
     null, fit = bases[material]
     cap = work / f"t{k:03d}"
     t0 = time.time()
