@@ -167,3 +167,14 @@ def test_band_read_from_the_twins_dngs(tiny_captures, tmp_path_factory):
     assert np.sqrt(np.sum((truth / se) ** 2)) > BAND_Z3 + 2
     assert out["moved"]["significant"], out["moved"]
     assert not out["null"]["significant"], out["null"]
+
+
+def test_the_causes_that_bend_the_band_are_those_found():
+    from types import SimpleNamespace
+
+    from glossrig.core.diagnose.marker_band import bending_causes
+
+    causes = [SimpleNamespace(name="stray_light", eligible=True), SimpleNamespace(name="ggx_lobe", eligible=True),
+              SimpleNamespace(name="sensor_nonlinearity", eligible=False), SimpleNamespace(name="hot_pixels", eligible=True)]
+    assert bending_causes(causes, {"significant": True}, {"significant": False}) == ["stray_light", "vignetting"]
+    assert bending_causes([], None, None) == []

@@ -185,7 +185,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     with one_blas_thread():
         apply_silhouette_evidence(model_of(m, next((c for c in causes if c.name == "sample_radius_error"), None)),
                                   causes, outline)
-    moved = band_evidence(band, data.lamps, bending_causes(fcauses, stray, vig, emission))
+    moved = band_evidence(band, data.lamps, bending_causes(causes + fcauses, vig, emission))
     with one_blas_thread():
         apply_band_evidence(model_of(m, next((c for c in causes if c.name == "led_position_error"), None)), causes,
                             moved)

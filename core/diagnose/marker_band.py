@@ -247,11 +247,15 @@ def band_evidence(units: list[dict], lamps: dict, bent_by: list[str] | None = No
     return ev
 
 
-def bending_causes(fcauses: list[CauseResult], stray: dict | None, vig: dict | None, emission: dict | None) -> list[str]:
-    """The causes found in a capture that bend the band's shading (module docstring)."""
-    out = [c.name for c in fcauses if c.name in BENDING_SENSOR and c.eligible]
-    for name, ev in (("stray_light", stray), ("vignetting", vig), ("led_emission", emission)):
-        if ev is not None and ev.get("significant"):
+def bending_causes(causes: list[CauseResult], vig: dict | None, emission: dict | None) -> list[str]:
+    """The causes found in a capture that bend the band's shading (module docstring): an eligible sensor
+    response cause (frames), an eligible BRDF-space stray light, vignetting or LED emission (named
+    through their own witnesses: the frames' dark pixels, the white patch), or a significant patch
+    signature of vignetting or emission."""
+    bending = BENDING_SENSOR + ("stray_light", "vignetting", "led_emission")
+    out = [c.name for c in causes if c.name in bending and c.eligible]
+    for name, ev in (("vignetting", vig), ("led_emission", emission)):
+        if ev is not None and ev.get("significant") and name not in out:
             out.append(name)
     return out
 
