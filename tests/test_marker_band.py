@@ -122,6 +122,14 @@ def test_the_band_names_the_leds_moves_and_refutes_moves_it_does_not_show(moved_
     assert abs(c.magnitude - ev["magnitude"]) < 1e-12
     assert verdict(causes) == "led_position_error"
     json.dumps(c.to_json())
+    # an LED the band did not measure stays where the lamp calibration puts it; the others still name the cause
+    partial = copy.deepcopy(ev)
+    del partial["per_led"]["6"]
+    causes = copy.deepcopy(fitted)
+    c = next(x for x in causes if x.name == "led_position_error")
+    c.identifiable = False
+    apply_band_evidence(model_of(m, c), causes, partial)
+    assert c.params["fixed_by"] == "marker band" and "LED(s) 6 not measured on the band" in c.note
     # a band that shows the LEDs where they were refutes the BRDF rows' moves
     causes = copy.deepcopy(fitted)
     c = next(x for x in causes if x.name == "led_position_error")

@@ -272,8 +272,12 @@ def apply_band_evidence(m, causes: list[CauseResult], ev: dict | None) -> None:
     c.params.update({"offset_band_mm": {k: p["offset_mm"] for k, p in ev["per_led"].items()},
                      "band": {k: ev[k] for k in ("magnitude", "se", "gain", "fold_gains", "significant", "why_not")}})
     geo = Geometry(m)
-    if ev["significant"] and all(str(k) in ev["per_led"] for k in geo.leds):
-        offsets = {k: np.asarray(ev["per_led"][str(k)]["offset_mm"], float) for k in geo.leds}
+    if ev["significant"]:
+        # an LED the band gave no estimate for (too few band pixels it lights well) stays where the lamp
+        # calibration puts it, and is said so
+        offsets = {k: np.asarray(ev["per_led"][str(k)]["offset_mm"], float) if str(k) in ev["per_led"]
+                   else np.zeros(3) for k in geo.leds}
+        unseen = [k for k in geo.leds if str(k) not in ev["per_led"]]
 
         def test():
             return geo.held_test(offsets=offsets)
@@ -281,7 +285,9 @@ def apply_band_evidence(m, causes: list[CauseResult], ev: dict | None) -> None:
                 "captures, is shaded between them as by LEDs moved by "
                 + "; ".join(f"LED {k}: ({', '.join(f'{v:+.2g}' for v in p['offset_mm'])}) mm"
                             for k, p in ev["per_led"].items())
-                + f" (held-out gain {ev['gain']:.1%}; no material acts there; free BRDF-space fit: RMS {mag_b:.3g} mm)")
+                + f" (held-out gain {ev['gain']:.1%}; no material acts there; free BRDF-space fit: RMS {mag_b:.3g} mm)"
+                + (f"; LED(s) {', '.join(map(str, unseen))} not measured on the band, held at the lamp calibration's"
+                   if unseen else ""))
         extra = {"offset_mm": {k: p["offset_mm"] for k, p in ev["per_led"].items()}}
         if take_witness_test(c, m, ev, "rms_mm", ev["magnitude"], None, extra, note, "marker band", test=test,
                              direct=True):
