@@ -39,6 +39,7 @@ from glossrig.core.diagnose.stray_light import apply_frame_evidence, frame_evide
 from glossrig.core.rig import load_rig
 from glossrig.core.diagnose.marker_band import apply_band_evidence, band_evidence, band_rates, bending_causes
 from glossrig.core.diagnose.silhouette import apply_silhouette_evidence, limb_rates, silhouette_evidence
+from glossrig.core.diagnose.witness import brdf_cause
 from glossrig.core.diagnose.white_patch import (apply_emission_evidence, apply_patch_evidence, emission_evidence,
                                                 patch_evidence, patch_points, patch_rates)
 from glossrig.core.diagnose.unexplained import retested_cause, unexplained
@@ -183,11 +184,11 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     outline = (silhouette_evidence(limbs, data.measured.geometry, data.camera, rig_s.cylinder_radius,
                                    rig_s.sample_height, data.lamps) if data.camera is not None else None)
     with one_blas_thread():
-        apply_silhouette_evidence(model_of(m, next((c for c in causes if c.name == "sample_radius_error"), None)),
+        apply_silhouette_evidence(model_of(m, brdf_cause(causes, "sample_radius_error")),
                                   causes, outline)
     moved = band_evidence(band, data.lamps, bending_causes(causes + fcauses, vig, emission))
     with one_blas_thread():
-        apply_band_evidence(model_of(m, next((c for c in causes if c.name == "led_position_error"), None)), causes,
+        apply_band_evidence(model_of(m, brdf_cause(causes, "led_position_error")), causes,
                             moved)
     if moved is not None:
         log(f"LED positions from the marker band: RMS move {moved['magnitude']:.3g} +- {moved['se']:.2g} mm"

@@ -271,8 +271,8 @@ def apply_band_evidence(m, causes: list[CauseResult], ev: dict | None) -> None:
     mag_b = float(c.magnitude) if c.magnitude is not None else float("nan")
     c.params.update({"offset_band_mm": {k: p["offset_mm"] for k, p in ev["per_led"].items()},
                      "band": {k: ev[k] for k in ("magnitude", "se", "gain", "fold_gains", "significant", "why_not")}})
-    geo = Geometry(m)
     if ev["significant"]:
+        geo = Geometry(m)
         # an LED the band gave no estimate for (too few band pixels it lights well) stays where the lamp
         # calibration puts it, and is said so
         offsets = {k: np.asarray(ev["per_led"][str(k)]["offset_mm"], float) if str(k) in ev["per_led"]

@@ -67,7 +67,7 @@ from pathlib import Path
 import numpy as np
 
 from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD, CauseResult, consistent_folds
-from glossrig.core.diagnose.witness import BOUND_Z, brdf_cause, refute, take_witness_test
+from glossrig.core.diagnose.witness import BOUND_Z, brdf_cause, refute, single_leds, take_witness_test
 
 EDGE_PX = 0.25       # the limb's model error, pixels (module docstring)
 COS_MIN = 0.5        # a limb counts under an LED with cos(theta_in) at least this at the limb point
@@ -138,8 +138,7 @@ def limb_rates(sample_dir, geometry: dict, camera: tuple) -> list[dict]:
     K, dist = camera
     units = []
     for rot, g in sorted(geometry.items()):
-        leds = sorted({im.leds[0] for im in man.images if im.role == "sequence" and im.rotation == rot
-                       and len(im.leds) == 1})
+        leds = single_leds(man, rot)
         if not leds:
             continue
         seq0 = led_sequence(man, rot, leds[0])
@@ -196,8 +195,8 @@ def _limb_columns(unit: dict, geom, K, dist, radius: float, height: float, lamp,
         c, r = np.asarray(c, float), np.asarray(r, float)
         return (x0 + r, y0 + c) if tr else (x0 + c, y0 + r)
 
-    lamp_c = geom.R_cyl.T @ (np.asarray(lamp, float) - geom.t_cyl)
-    out: dict[str, list] = {"low": [], "high": []}
+    # the edges first, then one ray cast for all of them (and half a pixel either side: mm per pixel)
+    found = []
     for c in range(img.shape[1]):
         col = img[:, c]
         on = (r_grid[:, c] < radius + 3.0) & (np.abs(y_grid[:, c]) < height / 2 - SAMPLE_MARGIN_MM)
@@ -206,17 +205,23 @@ def _limb_columns(unit: dict, geom, K, dist, radius: float, height: float, lamp,
             continue
         for side, start, step in (("low", idx.min(), 1), ("high", idx.max(), -1)):
             e = _edge(col, int(start), step)
-            if e is None:
-                continue
-            u, v = pix([c, c, c], [e, e - 0.5, e + 0.5])
-            r, y, p = axis_distance(geom, K, dist, u, v)
-            if abs(y[0]) > height / 2 - SAMPLE_MARGIN_MM:
-                continue
-            n = p[0] * np.array([1.0, 0.0, 1.0])
-            wi = lamp_c - p[0]
-            cos_in = float(n @ wi / (np.linalg.norm(n) * np.linalg.norm(wi)))
-            out[side].append((r[0] - radius, abs(r[2] - r[1]), cos_in, c))
-    return {s: np.array(v, float).reshape(-1, 4) for s, v in out.items()}
+            if e is not None:
+                found.append((side, c, e))
+    out: dict[str, np.ndarray] = {"low": np.zeros((0, 4)), "high": np.zeros((0, 4))}
+    if not found:
+        return out
+    cs = np.array([f[1] for f in found], float)
+    es = np.array([f[2] for f in found], float)
+    u, v = pix(np.repeat(cs, 3), (es[:, None] + np.array([0.0, -0.5, 0.5])).ravel())
+    r, y, p = axis_distance(geom, K, dist, u, v)
+    r, y, p = r.reshape(-1, 3), y.reshape(-1, 3)[:, 0], p.reshape(-1, 3, 3)[:, 0]
+    n = p * np.array([1.0, 0.0, 1.0])
+    wi = (geom.R_cyl.T @ (np.asarray(lamp, float) - geom.t_cyl))[None, :] - p
+    cos_in = np.sum(n * wi, axis=1) / (np.linalg.norm(n, axis=1) * np.linalg.norm(wi, axis=1))
+    rows = np.stack([r[:, 0] - radius, np.abs(r[:, 2] - r[:, 1]), cos_in, cs], axis=1)
+    keep = np.abs(y) <= height / 2 - SAMPLE_MARGIN_MM
+    sides = np.array([f[0] for f in found])
+    return {sd: rows[keep & (sides == sd)] for sd in ("low", "high")}
 
 
 def _grid(unit: dict, geom, K, dist) -> tuple[np.ndarray, np.ndarray]:
