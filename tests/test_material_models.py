@@ -295,3 +295,20 @@ def test_diagnose_refuses_a_fit_of_another_material(chain, tmp_path):  # noqa: F
 
 
 from test_diagnose import chain  # noqa: E402,F401  (the slow twin chain of tests/test_diagnose.py)
+
+
+def test_rgl_study_judges_the_verdict_on_diagnoses_own_fits(rgl_study):
+    """The rgl study's check counts a match when diagnose's verdict is the best extension against the truth
+    as diagnose fits it (``diagnose_fits``), and reports the thesis-objective ranking beside it."""
+    def material(best_new, best_old, verdict, kind="material"):
+        return {"extensions": {"best": best_old, "gain": {best_old: 0.7}, "baseline_rig_error": 0.067},
+                "diagnose_fits": {"best": best_new, "gain": {best_new: 0.3, "ggx_lobe": 0.1}, "baseline_rig_error": 0.022},
+                "diagnose": {"verdict": verdict, "causes": [{"name": verdict, "kind": kind}], "calibration": {}}}
+    results = {"a": material("none", "grazing_lobe", "none"), "b": material("ggx_lobe", "ggx_lobe", "flexible_material"),
+               "c": material("grazing_lobe", "flexible_material", "stray_light", "instrument"),
+               "_paper_albedo": {}}
+    text = "\n".join(rgl_study.verdict_table(results))
+    assert "matches the best extension against the truth on 1 of 3 captures (with the thesis-objective fits: 0 of 3)" in text
+    assert "an instrument cause is named on 1 of 3" in text
+    row = next(x for x in text.splitlines() if x.startswith("| a |"))
+    assert "`none` | `none` | yes |" in row and "`grazing_lobe` (no)" in row

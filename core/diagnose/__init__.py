@@ -59,6 +59,17 @@ def luminance_params(ff: FitFile):
     return lum.params
 
 
+def material_fit(table):
+    """The luminance Ward parameters diagnose's base model takes from the capture itself (no ``--fit``, or
+    a reference BRDF given): ``glossrig fit``'s fit of the measured table, as the point model every cause
+    compares with (:class:`.catalogue.BrdfModel`: ward_from_angles at the block's angles; the footprint's
+    effect is part of the calibrated model-error term) and without the uncertainty budget - only the
+    parameters are used (the footprint fit and the GUM budget took most of diagnose's time)."""
+    from glossrig.core.fitting.fit import fit_samples
+
+    return fit_samples(table, channels=["luminance"], footprint=False, budget=False).fits["luminance"].params
+
+
 def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: float = 0.8,
              progress: bool = False, log=print, reference_brdf=None, reference_measured=None,
              plots: bool = True, store=None, reference_source: str | None = None) -> dict:
@@ -90,7 +101,6 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
     sample and reference measurements, the material fit, the BRDF-space causes, the
     frame-space causes with their residual structure), so an interrupted diagnosis
     resumes and writes the same report (its ``meta.time_s`` apart)."""
-    from glossrig.core.fitting.fit import fit_samples
     from glossrig.core.calibration.intrinsics import load_camera
     from glossrig.core.calibration.lamps import load_lamps
     from glossrig.core.models.ward import ward_from_angles
@@ -130,11 +140,7 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
             " (the given --fit, made on thesis-normalised data, was only checked against this capture)"
             if fit is not None else ""))
     if not data.material_fixed:
-        # the point model, as every cause compares with (BrdfModel: ward_from_angles at the block's angles; the
-        # footprint's effect is part of the calibrated model-error term), and no uncertainty budget: only the
-        # parameters are used (the footprint fit and the GUM budget took most of diagnose's time)
-        w = stage("material_fit", lambda: fit_samples(t, channels=["luminance"], footprint=False,
-                                                      budget=False).fits["luminance"].params)
+        w = stage("material_fit", lambda: material_fit(t))
     log(f"material: {w} ({took()})")
     m = BrdfModel.build(data, w)
     for ch, e in m.channel_fill.items():

@@ -735,23 +735,17 @@ def brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
         return _brdf_causes(m, log)
 
 
-def _brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
-    from glossrig.core.progress import Elapsed
-    from glossrig.core.diagnose.geometry import geometry_causes             # LED emission / position, sample radius
+def material_models(m: BrdfModel, done=None) -> list[CauseResult]:
+    """Every material model of the catalogue fitted and scored on ``m`` against its Ward base (leave-one-LED-out
+    folds): the lobe models (:func:`glossrig.core.diagnose.material_models.material_causes`), Schlick's
+    Fresnel factor and the flexible model (:func:`glossrig.core.diagnose.flexible.flexible_cause`). Each
+    result's ``prediction`` is the model fitted on all rows (validation/diagnose/rgl_study.py scores them
+    against the true BRDF). ``done``: callable(list of results), called as each group finishes."""
     from glossrig.core.diagnose.material_models import material_causes     # GGX, Beckmann, grazing lobes
     from glossrig.core.diagnose.flexible import flexible_cause
 
-    took = Elapsed().__str__
-    say = log or (lambda *a: None)
-
-    def done(results: list[CauseResult]) -> None:
-        """One progress line per cause as it finishes (a long loop says where it is)."""
-        for r in results:
-            say(f"  {r.name} fitted and scored ({took()})")
-
+    done = done or (lambda results: None)
     c = m.cols
-    # ---- the material models first (against the Ward base model): an instrument cause is then fitted on
-    # top of the best of them (issue 14, item 3; instrument_base)
     mats = material_causes(m)
     done(mats)
 
@@ -769,6 +763,24 @@ def _brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
     done(mats[-1:])
     mats.append(flexible_cause(m))
     done(mats[-1:])
+    return mats
+
+
+def _brdf_causes(m: BrdfModel, log=None) -> list[CauseResult]:
+    from glossrig.core.progress import Elapsed
+    from glossrig.core.diagnose.geometry import geometry_causes             # LED emission / position, sample radius
+
+    took = Elapsed().__str__
+    say = log or (lambda *a: None)
+
+    def done(results: list[CauseResult]) -> None:
+        """One progress line per cause as it finishes (a long loop says where it is)."""
+        for r in results:
+            say(f"  {r.name} fitted and scored ({took()})")
+
+    # ---- the material models first (against the Ward base model): an instrument cause is then fitted on
+    # top of the best of them (issue 14, item 3; instrument_base)
+    mats = material_models(m, done)
 
     mi, mrot = instrument_bases(m, mats)
     if mi is m and mrot is m:        # no material to fit them on top of: the causes are selected among themselves

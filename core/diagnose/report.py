@@ -40,7 +40,46 @@ def ranking(causes: list[CauseResult]) -> list[CauseResult]:
         if group < 2 or c.kind != "material":
             return (group, 0, -c.gain)
         return (group, 1, -(c.robust_gain if c.robust_gain is not None else c.gain))
-    return sorted(sig, key=key)
+    ranked = sorted(sig, key=key)
+    mats = [c for c in ranked if key(c)[:2] == (2, 1)]
+    if mats:
+        at = ranked.index(mats[0])
+        ranked[at:at + len(mats)] = parsimonious(mats)
+    return ranked
+
+
+#: one-sided level of the paired fold test by which the flexible material model must beat the best named one
+PARSIMONY_LEVEL = 0.05
+
+
+def parsimonious(materials: list[CauseResult]) -> list[CauseResult]:
+    """The material models ``materials`` (ordered by robust held-out gain) with the best named model
+    (GGX, Beckmann, the grazing term, Fresnel: a handful of physical parameters) put before the
+    flexible model when the flexible one does not beat it significantly: a one-sided paired t-test
+    of their robust held-out fold gains (:class:`.catalogue.RobustScore`, the same held-out LEDs)
+    at PARSIMONY_LEVEL. The flexible model (hat functions in theta_h and a grazing term, tens of
+    coefficients) can follow any smooth isotropic departure, so it will often edge ahead by a
+    little; a named model that predicts the held-out LEDs as well is the better answer - it says
+    what the material is, and it extrapolates to angles the rig did not see. On the rgl study's
+    vch_golden_yellow the flexible model led GGX by 2 points of robust gain (t = 1.2 over 8 folds)
+    while against the true BRDF they were level (+41.6 % and +41.7 %); where the flexible model was
+    clearly better against the truth it also led significantly (ilm_l3_37_matte t = 2.1,
+    acrylic_felt_green 3.7, satin_rosaline 7.0; validation/diagnose/rgl_study.md). The folds share
+    training rows, so the test is somewhat liberal (Nadeau & Bengio 2003): it keeps the flexible
+    model first in a close call more often than a corrected test would."""
+    from scipy.stats import t as student_t
+
+    if len(materials) < 2 or materials[0].name != "flexible_material":
+        return materials
+    flex, named = materials[0], materials[1]
+    if flex.robust is None or named.robust is None:
+        return materials
+    d = np.asarray(flex.robust["fold_gains"], float) - np.asarray(named.robust["fold_gains"], float)
+    if d.size < 2:
+        return [named, flex] + materials[2:]
+    se = float(np.std(d, ddof=1)) / np.sqrt(d.size)
+    better = float(np.mean(d)) > (student_t.ppf(1 - PARSIMONY_LEVEL, d.size - 1) * se if se > 0 else 0.0)
+    return materials if better else [named, flex] + materials[2:]
 
 
 def verdict(causes: list[CauseResult]) -> str:
@@ -59,9 +98,10 @@ def verdict(causes: list[CauseResult]) -> str:
     the flexible material model on held-out folds is blocked (:mod:`.flexible`). Among the
     material models the largest robust held-out gain wins (:func:`ranking`: the median held-out
     relative residual), the flexible one included: the issue's criterion is the extension that
-    predicts best, in median relative error. (A named model used to be preferred when it
-    reached half the flexible model's gain; on the rgl study that named GGX where the flexible
-    model was closer to the truth - satin_rosaline, ilm_l3_37_metallic - and was dropped.)"""
+    predicts best, in median relative error - but the flexible model must beat the best named
+    model significantly over the folds (:func:`parsimonious`). (A named model used to be preferred
+    when it reached half the flexible model's gain; on the rgl study that named GGX where the
+    flexible model was closer to the truth - satin_rosaline, ilm_l3_37_metallic - and was dropped.)"""
     r = ranking(causes)
     return r[0].name if r else "none"
 

@@ -13,13 +13,14 @@ measure them: middle-row LEDs, scale 0.25, the real white paper
 (Lambertian reference of albedo 0.8). Each capture goes through ``glossrig extract``,
 ``glossrig fit`` and ``glossrig diagnose --reference-brdf``, which renormalises the data with
 the paper's own BRDF as a calibration step (issue 14, item 4) before it fits the Ward model and
-tests its causes. The study stands on the same footing: the data renormalised the same way
-(:func:`glossrig.core.diagnose.data.renormalise_table`), the baseline is the Ward model fitted
-to it, and each material extension diagnose can name (:mod:`glossrig.core.diagnose.material_models`,
-:mod:`glossrig.core.diagnose.flexible`) is fitted to it and scored against the true BRDF
-(:mod:`glossrig.twin.measured_brdf`, :mod:`glossrig.twin.mitsuba_material`) at the rig's angles;
-the one that gains most (or ``none``: no gain above TRUTH_GAIN_MIN) is set beside diagnose's
-verdict. The thesis-normalised fits and the lobe models on a held-out grid of directions the rig
+tests its causes. The check stands on diagnose's footing (:func:`diagnose_fits`): the capture
+measured and renormalised as diagnose does it, diagnose's Ward base model and each material
+extension it can name (:func:`glossrig.core.diagnose.catalogue.material_models`) fitted as diagnose
+fits them, and scored against the true BRDF (:mod:`glossrig.twin.measured_brdf`,
+:mod:`glossrig.twin.mitsuba_material`) at the rig's angles; the one that gains most (or ``none``: no
+gain above TRUTH_GAIN_MIN) is set beside diagnose's verdict. The same extensions fitted with the
+thesis's objective to the renormalised extracted samples (:func:`extension_fits`, against the Ward
+fit of ``glossrig fit``; the check's footing until 3 December) are ranked beside it. The thesis-normalised fits and the lobe models on a held-out grid of directions the rig
 never saw (theta_d > 30 deg) are kept as findings about the reference's data error and about
 what the rig cannot see. Writes WORK/study.json, the plots and validation/diagnose/rgl_study.md.
 
@@ -401,6 +402,56 @@ def truth_ranking(r: dict) -> dict:
     return {"baseline_rig_error": e0, "gain": gains, "best": best if gains[best] > TRUTH_GAIN_MIN else "none"}
 
 
+def diagnose_fits(m: str, run: dict, work: Path, a) -> dict:
+    """The truth ranking on diagnose's own fits (issue 14's criterion): the capture measured as
+    ``glossrig diagnose --reference-brdf`` measures it (:func:`glossrig.core.diagnose.data.load_brdf`,
+    renormalised with the paper's BRDF), its base model (:func:`glossrig.core.diagnose.material_fit`'s
+    Ward lobe, rho_d and rho_s solved with the calibrated error model on all rows) and every material
+    model of its catalogue fitted on all rows (:func:`glossrig.core.diagnose.catalogue.material_models`),
+    each scored against the true BRDF at those rows (median |f_model / f_true - 1| where f_true > FLOOR);
+    gain = relative reduction of the base model's error; ``best``: the largest gain, or "none" below
+    TRUTH_GAIN_MIN. The question the criterion asks is whether diagnose names the extension that
+    brings *its* model closest to the truth, so the extensions are fitted as diagnose fits them: with
+    the thesis's objective (eq. 4.81-4.82, :func:`extension_fits`) the baseline and the extensions
+    weigh the rows otherwise, and the gains measure the objective as much as the model - on
+    paper_white the Ward fit of ``glossrig fit`` (alpha held at its bound 0.5) was 6.7 % off the truth,
+    the grazing term fitted with that objective 2.0 %, while diagnose's own Ward base was 2.2 % off.
+    The diagnosis's selection steps (an instrument cause picked first, the material refitted without
+    its effect) are not part of the ranking: it must not depend on the logic it judges."""
+    import numpy as np
+
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.calibration.lamps import load_lamps
+    from glossrig.core.diagnose import material_fit
+    from glossrig.core.diagnose.catalogue import BrdfModel, material_models
+    from glossrig.core.diagnose.data import LUMA, load_brdf
+    from glossrig.core.workers import one_blas_thread
+    from glossrig.twin.measured_brdf import MeasuredBRDF
+
+    print(f"[{m}] diagnose's fits against the truth", flush=True)
+    cam, lamps = calibrations(work, a)
+    data = load_brdf(run["capture"], work / "reference", load_camera(cam), load_lamps(lamps), albedo=ALBEDO,
+                     reference_brdf=MeasuredBRDF(REFERENCE).table, reference_source=str(REFERENCE))
+    model = BrdfModel.build(data, material_fit(data.table))
+    y_true = truth_of(m).table(data.table.iloc[model.rows]) @ LUMA
+    ok = y_true > FLOOR
+
+    def error(pred) -> float:
+        return float(np.median(np.abs(pred[ok] / y_true[ok] - 1)))
+
+    c = model.cols
+    _, base, _ = model.solve_linear([model.diffuse(), c["L"]], np.ones(len(c["y"]), bool))
+    with one_blas_thread():
+        mats = material_models(model)
+    e0 = error(base)
+    errs = {r.name: error(r.prediction) for r in mats}
+    gains = {k: (e0 - e) / e0 for k, e in errs.items()}
+    best = max(gains, key=lambda k: gains[k])
+    return {"code": diagnose_code(), "n_rows": int(ok.sum()), "data_rig_error": error(c["y"]),
+            "baseline_rig_error": e0, "error": errs, "gain": gains,
+            "best": best if gains[best] > TRUTH_GAIN_MIN else "none"}
+
+
 def diagnose_summary(run: dict) -> dict | None:
     dg = Path(run["diagnose"]) / "report.json"
     if not dg.exists():
@@ -417,44 +468,53 @@ def diagnose_summary(run: dict) -> dict | None:
 
 def verdict_table(results: dict) -> list[str]:
     """Issue 14's check: per material, the extension that gains most against the truth at the rig's
-    angles (or none: no gain above TRUTH_GAIN_MIN) beside diagnose's verdict made without ground truth."""
+    angles as diagnose fits it (:func:`diagnose_fits`; or none: no gain above TRUTH_GAIN_MIN) beside
+    diagnose's verdict made without ground truth; the same ranking with the thesis's fit objective
+    (:func:`truth_ranking`) beside it."""
     L = ["## Verdict against the truth (issue 14)", "",
-         "On diagnose's footing: the capture's data renormalised with the paper's own BRDF (the calibration "
-         "`glossrig diagnose --reference-brdf` applies; not a cause). For each material: the baseline - the "
-         "thesis's Ward model fitted to the renormalised data - and its error against the truth at the rig's "
-         "angles, each extension diagnose can name fitted to the same renormalised data and scored against the "
-         "truth at the same angles (gain = relative reduction of the baseline's median |relative error|), and "
-         f"the best of them - the answer diagnose should give, or `none` when no extension lowers the error by "
-         f"more than {TRUTH_GAIN_MIN:.0%} - beside diagnose's verdict (made without the truth). Extensions: "
-         + ", ".join(f"`{k}`" for k in EXTENSIONS) + ".", "",
-         "| material | baseline error (rig) | gain of each extension vs truth | best vs truth | diagnose verdict "
-         "| match | instrument cause named | base held-out error | diagnose's reference calibration |",
-         "|---|---|---|---|---|---|---|---|---|"]
-    n_ok = n_match = n_instr = 0
+         "On diagnose's footing: the capture measured as `glossrig diagnose --reference-brdf` measures it (the data "
+         "renormalised with the paper's own BRDF, a calibration, not a cause), diagnose's base model (the Ward lobe "
+         "of `glossrig fit`, rho_d and rho_s solved with its calibrated error model) and each material model "
+         "of its catalogue fitted as diagnose fits it, on all rows; each scored against the truth at those rows "
+         "(gain = relative reduction of the base model's median |relative error|; `validation.diagnose.rgl_study."
+         f"diagnose_fits`). The best - the answer diagnose should give, or `none` when no extension lowers the error "
+         f"by more than {TRUTH_GAIN_MIN:.0%} - beside diagnose's verdict (made without the truth). Extensions: "
+         + ", ".join(f"`{k}`" for k in EXTENSIONS) + ". The last column ranks the same extensions fitted with "
+         "the thesis's objective (eq. 4.81-4.82, 'glossrig fit') against the Ward fit of `glossrig fit`, the "
+         "footing of this check before 3 December (second session): there the gains measure the fit objective "
+         "as much as the model (paper_white: the Ward fit, alpha held at its bound 0.5, is 6.7 % off the truth "
+         "where diagnose's Ward base is 2.2 % off).", "",
+         "| material | base error (rig) | gain of each extension vs truth | best vs truth | diagnose verdict "
+         "| match | instrument cause named | base held-out error | thesis-objective fits: best (match) "
+         "| diagnose's reference calibration |",
+         "|---|---|---|---|---|---|---|---|---|---|"]
+    n_ok = n_match = n_instr = n_old = 0
     for m, r in results.items():
         if m.startswith("_"):
             continue
         if "failed" in r or "extensions" not in r:
-            L.append(f"| {m} | {r.get('failed', 'not analysed')} | | | | | | | |")
+            L.append(f"| {m} | {r.get('failed', 'not analysed')} | | | | | | | | |")
             continue
-        ex, d = r["extensions"], r.get("diagnose")
+        old, ex, d = r["extensions"], r.get("diagnose_fits"), r.get("diagnose")
+        if d is None or ex is None:
+            L.append(f"| {m} | | | | not run | | | | `{old['best']}` | |")
+            continue
         gains = ", ".join(f"{k} {100 * g:+.1f} %" for k, g in sorted(ex["gain"].items(), key=lambda kv: -kv[1]))
-        if d is None:
-            L.append(f"| {m} | {_pct(ex['baseline_rig_error'])} | {gains} | `{ex['best']}` | not run | | | | |")
-            continue
         kinds = {c["name"]: c.get("kind") for c in d["causes"]}
         instrument = kinds.get(d["verdict"]) == "instrument"
         match = d["verdict"] == ex["best"]
         n_ok += 1
         n_match += match
         n_instr += instrument
+        n_old += d["verdict"] == old["best"]
         cal = (d.get("calibration") or {}).get("heldout_error")
         L.append(f"| {m} | {_pct(ex['baseline_rig_error'])} | {gains} | `{ex['best']}` | `{d['verdict']}` | "
                  f"{'yes' if match else 'no'} | {'yes' if instrument else 'no'} | "
-                 f"{'n/a' if cal is None else f'{cal:.3g}'} | {_calibration(d.get('reference_calibration'))} |")
-    L += ["", f"Diagnose's verdict matches the best extension against the truth on {n_match} of {n_ok} captures; "
-          f"an instrument cause is named on {n_instr} of {n_ok} (none of these captures has an instrument effect).",
-          ""]
+                 f"{'n/a' if cal is None else f'{cal:.3g}'} | `{old['best']}` "
+                 f"({'yes' if d['verdict'] == old['best'] else 'no'}) | {_calibration(d.get('reference_calibration'))} |")
+    L += ["", f"Diagnose's verdict matches the best extension against the truth on {n_match} of {n_ok} captures "
+          f"(with the thesis-objective fits: {n_old} of {n_ok}); an instrument cause is named on {n_instr} of "
+          f"{n_ok} (none of these captures has an instrument effect).", ""]
     return L
 
 
@@ -750,6 +810,13 @@ def main(argv=None):
             record(work / "provenance.json", f"{m}/analysis")
         results[m] = json.loads(f.read_text())
         results[m]["diagnose"] = diagnose_summary(r)
+        g = work / f"{m}.diagnose_fits.json"        # made again when the core/diagnose sources change
+        fits = json.loads(g.read_text()) if g.exists() else None
+        if not a.report_only and (fits is None or fits.get("code") != diagnose_code()):
+            fits = diagnose_fits(m, r, work, a)
+            g.write_text(json.dumps(fits, indent=1))
+            record(work / "provenance.json", f"{m}/diagnose_fits")
+        results[m]["diagnose_fits"] = fits
     results["_paper_albedo"] = {str(t): paper_albedo(t) for t in (0, 45)}
     (work / "study.json").write_text(json.dumps(results, indent=1))
     plots(results, work, Path(a.report).parent / "rgl_study")
