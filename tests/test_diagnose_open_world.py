@@ -380,7 +380,7 @@ def test_the_flexible_model_must_beat_the_best_named_model_significantly():
     """The flexible model comes first only when its robust fold gains beat the best named model's in a
     one-sided paired t-test at 5 % (report.parsimonious). The fold gains are those of the rgl study's
     diagnoses (validation/diagnose/rgl_study.md, 8 middle-row LEDs): on vch_golden_yellow the flexible
-    model led GGX by 2 points of robust gain with t = 1.2 (against the truth the two were level), so GGX
+    model led GGX by 2 points of robust gain with t = 1.2 (against the truth GGX was as good or better), so GGX
     is named; on ilm_l3_37_matte it led by 5 points with t = 2.1 (against the truth +88 % against +22 %),
     so it stays first. A named model that leads is not moved, nor is anything but the material models."""
     from glossrig.core.diagnose.report import parsimonious
