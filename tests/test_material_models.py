@@ -312,3 +312,17 @@ def test_rgl_study_judges_the_verdict_on_diagnoses_own_fits(rgl_study):
     assert "an instrument cause is named on 1 of 3" in text
     row = next(x for x in text.splitlines() if x.startswith("| a |"))
     assert "`none` | `none` | yes |" in row and "`grazing_lobe` (no)" in row
+
+
+def test_rgl_study_reuses_diagnoses_fits_only_for_the_same_captures(rgl_study, tmp_path):
+    """A kept ``diagnose_fits`` result is reused only when the core/diagnose sources and both captures match."""
+    for f in ("m", "reference"):
+        (tmp_path / f).mkdir()
+        (tmp_path / f / "capture.json").write_text('{"seed": 1}')
+    run = {"capture": str(tmp_path / "m")}
+    before = rgl_study.fits_inputs(run, tmp_path)
+    assert before == rgl_study.fits_inputs(run, tmp_path) and before["code"] == rgl_study.diagnose_code()
+    (tmp_path / "m" / "capture.json").write_text('{"seed": 2}')
+    assert rgl_study.fits_inputs(run, tmp_path)["capture"] != before["capture"]
+    (tmp_path / "reference" / "capture.json").write_text('{"seed": 3}')
+    assert rgl_study.fits_inputs(run, tmp_path)["reference"] != before["reference"]

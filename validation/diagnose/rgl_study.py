@@ -447,9 +447,21 @@ def diagnose_fits(m: str, run: dict, work: Path, a) -> dict:
     errs = {r.name: error(r.prediction) for r in mats}
     gains = {k: (e0 - e) / e0 for k, e in errs.items()}
     best = max(gains, key=lambda k: gains[k])
-    return {"code": diagnose_code(), "n_rows": int(ok.sum()), "data_rig_error": error(c["y"]),
+    return {**fits_inputs(run, work), "n_rows": int(ok.sum()), "data_rig_error": error(c["y"]),
             "baseline_rig_error": e0, "error": errs, "gain": gains,
             "best": best if gains[best] > TRUTH_GAIN_MIN else "none"}
+
+
+def fits_inputs(run: dict, work: Path) -> dict:
+    """What a :func:`diagnose_fits` result was made from, to reuse it only when they match: the
+    core/diagnose sources and the sample and reference captures (the sha256 of their capture.json,
+    which records the simulation's seed, material and effects)."""
+    import hashlib
+
+    def sha(folder) -> str | None:
+        f = Path(folder) / "capture.json"
+        return hashlib.sha256(f.read_bytes()).hexdigest() if f.exists() else None
+    return {"code": diagnose_code(), "capture": sha(run["capture"]), "reference": sha(work / "reference")}
 
 
 def diagnose_summary(run: dict) -> dict | None:
@@ -810,9 +822,10 @@ def main(argv=None):
             record(work / "provenance.json", f"{m}/analysis")
         results[m] = json.loads(f.read_text())
         results[m]["diagnose"] = diagnose_summary(r)
-        g = work / f"{m}.diagnose_fits.json"        # made again when the core/diagnose sources change
+        g = work / f"{m}.diagnose_fits.json"        # made again when its code or captures change
         fits = json.loads(g.read_text()) if g.exists() else None
-        if not a.report_only and (fits is None or fits.get("code") != diagnose_code()):
+        stale = fits is None or any(fits.get(k) != v for k, v in fits_inputs(r, work).items())
+        if not a.report_only and stale:
             fits = diagnose_fits(m, r, work, a)
             g.write_text(json.dumps(fits, indent=1))
             record(work / "provenance.json", f"{m}/diagnose_fits")
