@@ -289,9 +289,13 @@ def test_a_material_model_may_carry_the_fold_rule_on_its_robust_folds():
     two = list(MINT_ROBUST_FOLDS)
     two[0] = two[1] = -0.05
     graze.robust["fold_gains"] = two
-    assert not graze.significant
-    graze.robust["fold_gains"] = list(MINT_ROBUST_FOLDS)
-    assert not _material("grazing_lobe", 0.015, MINT_FOLDS, 0.398).significant   # below the pooled threshold
+    assert not graze.folds_consistent and not graze.significant
+    # consistent robust folds do not lower the other requirements: each case fails on that requirement alone
+    low = _material("grazing_lobe", 0.015, MINT_FOLDS, 0.398)            # pooled gain below the threshold
+    worse = _material("grazing_lobe", 0.285, MINT_FOLDS, -0.01)          # median residual not lowered
+    for c in (low, worse):
+        c.robust["fold_gains"] = list(MINT_ROBUST_FOLDS)
+        assert c.folds_consistent and not c.significant
 
 
 def test_material_models_are_ranked_by_the_robust_heldout_gain():
