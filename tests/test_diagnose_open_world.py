@@ -298,6 +298,41 @@ def test_a_material_model_may_carry_the_fold_rule_on_its_robust_folds():
         assert c.folds_consistent and not c.significant
 
 
+def _heldout(pooled, fold_errors, rel_residuals):
+    """A HeldOut of 8 folds of 10 rows at y = 1, each fold's prediction 1 + its relative residual."""
+    from glossrig.core.diagnose.catalogue import HeldOut
+
+    preds = []
+    for k, r in enumerate(rel_residuals):
+        test = np.zeros(80, bool)
+        test[10 * k:10 * k + 10] = True
+        preds.append((test, np.full(80, 1.0 + r)))
+    return HeldOut(pooled, list(fold_errors), preds)
+
+
+def test_the_material_an_instrument_cause_is_fitted_on_passes_the_material_rule():
+    """instrument_bases judges a candidate material as a material cause is judged: chm_mint's grazing term
+    (squared normalised score lost on LEDs 8 and 9, median relative residual lowered on all 8) passes, so the
+    instrument causes are fitted on it, not on the Ward lobe whose misfit they could take up. Two failed
+    robust folds, a median residual not lowered, or a pooled gain under the threshold each still fail."""
+    from glossrig.core.diagnose.catalogue import THRESHOLDS, passes_as_material
+
+    t, pen = THRESHOLDS["brdf"]
+    thr = t + pen * 1                                   # the grazing term: one extra parameter
+    y = np.ones(80)
+    ward = _heldout(1.0, [1.0] * 8, [0.2] * 8)
+    graze = _heldout(1 - 0.285, [1 - g for g in MINT_FOLDS], [0.2 * (1 - g) for g in MINT_ROBUST_FOLDS])
+    assert passes_as_material(ward, graze, y, thr)
+    two = list(MINT_ROBUST_FOLDS)
+    two[0] = two[1] = -0.05
+    assert not passes_as_material(ward, _heldout(1 - 0.285, graze.folds, [0.2 * (1 - g) for g in two]), y, thr)
+    # consistent normalised folds but the median relative residual raised: not a better material
+    assert not passes_as_material(ward, _heldout(0.7, [0.7] * 8, [0.21] * 8), y, thr)
+    # every fold and the median improved, pooled gain under the threshold
+    assert not passes_as_material(ward, _heldout(1 - thr / 2, [1 - thr / 2] * 8, [0.1] * 8), y, thr)
+    assert passes_as_material(ward, _heldout(1 - 2 * thr, [1 - 2 * thr] * 8, [0.1] * 8), y, thr)
+
+
 def test_material_models_are_ranked_by_the_robust_heldout_gain():
     """Among significant material models the one that lowers the median held-out relative residual most
     is named - the issue's measure against the true BRDF - not the one with the largest squared

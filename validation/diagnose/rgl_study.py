@@ -402,7 +402,7 @@ def truth_ranking(r: dict) -> dict:
     return {"baseline_rig_error": e0, "gain": gains, "best": best if gains[best] > TRUTH_GAIN_MIN else "none"}
 
 
-def diagnose_fits(m: str, run: dict, work: Path, a) -> dict:
+def diagnose_fits(m: str, run: dict, work: Path, a, reference=None) -> dict:
     """The truth ranking on diagnose's own fits (issue 14's criterion): the capture measured as
     ``glossrig diagnose --reference-brdf`` measures it (:func:`glossrig.core.diagnose.data.load_brdf`,
     renormalised with the paper's BRDF), its base model (:func:`glossrig.core.diagnose.material_fit`'s
@@ -417,7 +417,10 @@ def diagnose_fits(m: str, run: dict, work: Path, a) -> dict:
     paper_white the Ward fit of ``glossrig fit`` (alpha held at its bound 0.5) was 6.7 % off the truth,
     the grazing term fitted with that objective 2.0 %, while diagnose's own Ward base was 2.2 % off.
     The diagnosis's selection steps (an instrument cause picked first, the material refitted without
-    its effect) are not part of the ranking: it must not depend on the logic it judges."""
+    its effect) are not part of the ranking: it must not depend on the logic it judges.
+
+    ``reference``: the paper reference already measured with the study's camera and lamps
+    (:func:`measured_reference`; measured here when None)."""
     import numpy as np
 
     from glossrig.core.calibration.intrinsics import load_camera
@@ -431,7 +434,8 @@ def diagnose_fits(m: str, run: dict, work: Path, a) -> dict:
     print(f"[{m}] diagnose's fits against the truth", flush=True)
     cam, lamps = calibrations(work, a)
     data = load_brdf(run["capture"], work / "reference", load_camera(cam), load_lamps(lamps), albedo=ALBEDO,
-                     reference_brdf=MeasuredBRDF(REFERENCE).table, reference_source=str(REFERENCE))
+                     reference=reference, reference_brdf=MeasuredBRDF(REFERENCE).table,
+                     reference_source=str(REFERENCE))
     model = BrdfModel.build(data, material_fit(data.table))
     y_true = truth_of(m).table(data.table.iloc[model.rows]) @ LUMA
     ok = y_true > FLOOR
@@ -450,6 +454,19 @@ def diagnose_fits(m: str, run: dict, work: Path, a) -> dict:
     return {**fits_inputs(run, work), "n_rows": int(ok.sum()), "data_rig_error": error(c["y"]),
             "baseline_rig_error": e0, "error": errs, "gain": gains,
             "best": best if gains[best] > TRUTH_GAIN_MIN else "none"}
+
+
+def measured_reference(work: Path, a):
+    """The study's paper reference measured once with its camera and lamps, for every material's
+    :func:`diagnose_fits` (``glossrig diagnose`` measures it again in each diagnosis, whose work
+    folder is gone when it finishes)."""
+    from glossrig.core.calibration.intrinsics import load_camera
+    from glossrig.core.calibration.lamps import load_lamps
+    from glossrig.core.extraction.extract import measure_capture
+
+    cam, lamps = calibrations(work, a)
+    print("measuring the reference once for diagnose's fits", flush=True)
+    return measure_capture(work / "reference", load_camera(cam), load_lamps(lamps))
 
 
 def fits_inputs(run: dict, work: Path) -> dict:
@@ -808,6 +825,7 @@ def main(argv=None):
     if a.captures_only:
         return
     results = {}
+    reference = None                                # measured once, when the first diagnose_fits is made
     for m, r in runs.items():
         f = work / f"{m}.study.json"
         if "failed" in r:
@@ -826,7 +844,9 @@ def main(argv=None):
         fits = json.loads(g.read_text()) if g.exists() else None
         stale = fits is None or any(fits.get(k) != v for k, v in fits_inputs(r, work).items())
         if not a.report_only and stale:
-            fits = diagnose_fits(m, r, work, a)
+            if reference is None:
+                reference = measured_reference(work, a)
+            fits = diagnose_fits(m, r, work, a, reference)
             g.write_text(json.dumps(fits, indent=1))
             record(work / "provenance.json", f"{m}/diagnose_fits")
         results[m]["diagnose_fits"] = fits
