@@ -165,7 +165,7 @@ def test_band_read_from_the_twins_dngs(tiny_captures, tmp_path_factory):
         man = load_manifest(folder)
         rig = load_rig(folder / "rig.toml")
         geom = {0.0: rotation_geometry(man, rig, cam, 0.0)}
-        units = band_rates(folder, tiny_captures / "ref", geom, camera_arrays(cam))
+        units = band_rates(folder, tiny_captures / "ref", geom, camera_arrays(cam), cam.image_size)
         out[name] = band_evidence(units, {9: np.asarray(rig.led(9).position, float)})
     truth = np.asarray(read_truth(d / "sample")["effects"]["detail"]["led_offset_mm"]["9"], float)
     p = out["moved"]["per_led"]["9"]

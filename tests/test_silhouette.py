@@ -201,7 +201,7 @@ def test_outline_read_from_the_twins_dngs(tmp_path_factory):
     man = load_manifest(d / "sample")
     rig = load_rig(d / "sample" / "rig.toml")
     geom = {0.0: rotation_geometry(man, rig, cam, 0.0)}
-    units = limb_rates(d / "sample", geom, camera_arrays(cam))
+    units = limb_rates(d / "sample", geom, camera_arrays(cam), cam.image_size)
     ev = silhouette_evidence(units, geom, camera_arrays(cam), rig.cylinder_radius, rig.sample_height,
                              {6: np.asarray(rig.led(6).position, float)})
     assert ev is not None and ev["significant"], ev

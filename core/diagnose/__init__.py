@@ -163,11 +163,12 @@ def diagnose(sample_dir, reference_dir, camera, lamps, out, fit=None, albedo: fl
                                           else frame_stage(sample_dir, data.measured, log=log))
         units = stage("patch_rates", lambda: pw.result() if pw is not None else patch_rates(*patch_args))
     camera = data.camera
-    limbs = (stage("limb_rates", lambda: limb_rates(str(sample_dir), data.measured.geometry, camera))
+    limbs = (stage("limb_rates", lambda: limb_rates(str(sample_dir), data.measured.geometry, camera,
+                                                    data.image_size))
              if camera is not None else [])
     # the white marker band on the cylinder in both captures (the LED positions' signature, marker_band.py)
     band = (stage("band_rates", lambda: band_rates(str(sample_dir), str(reference_dir), data.measured.geometry,
-                                                  camera)) if camera is not None else [])
+                                                  camera, data.image_size)) if camera is not None else [])
     # stray light judged by the frames' dark pixels: refuted where they are darker than its veil,
     # named through its frame-space signature where they carry it (stray_light.py)
     stray = frame_evidence(veil, t, data.lamps)

@@ -108,13 +108,14 @@ def band_points(geom, camera: tuple, rig, size):
             "X": p[ok] @ geom.R_cyl.T + geom.t_cyl, "N": n @ geom.R_cyl.T}
 
 
-def band_rates(sample_dir, reference_dir, sample_geometry: dict, camera: tuple) -> list[dict]:
-    """Both captures' HDR rates over the marker band, per (rotation, LED): units with the band pixels'
+def band_rates(sample_dir, reference_dir, sample_geometry: dict, camera: tuple,
+               image_size: tuple[int, int]) -> list[dict]:
+    """Both captures' HDR rates over the marker band, per (rotation, LED), in images of ``image_size``
+    (width, height; the sample capture's): units with the band pixels'
     ``X``, ``N`` (:func:`band_points`, the sample capture's poses), CFA ``colour``, rates ``rs``, ``rr`` and
     variances ``vs``, ``vr`` where both are valid."""
     from glossrig.core.calibration.demosaic import channel_index
     from glossrig.core.capture import load_manifest
-    from glossrig.core.extraction.extract import led_sequence
     from glossrig.core.rig import load_rig
 
     ms, mr = load_manifest(Path(sample_dir)), load_manifest(Path(reference_dir))
@@ -124,8 +125,7 @@ def band_rates(sample_dir, reference_dir, sample_geometry: dict, camera: tuple) 
         leds = single_leds(ms, rot)
         if not leds:
             continue
-        size = tuple(ms.read_raw(led_sequence(ms, rot, leds[0])[0], crop=(0, 0, 2, 2)).full_size)
-        bp = band_points(g, camera, rig_s, size)
+        bp = band_points(g, camera, rig_s, image_size)
         if bp is None:
             continue
         box = bp["box"]

@@ -125,9 +125,10 @@ def limb_box(geom, K, dist, radius: float, height: float, size) -> tuple[tuple[i
     return (x0, y0, min(w, x1), min(h, y1)), bool(transposed)
 
 
-def limb_rates(sample_dir, geometry: dict, camera: tuple) -> list[dict]:
+def limb_rates(sample_dir, geometry: dict, camera: tuple, image_size: tuple[int, int]) -> list[dict]:
     """Every LED's HDR rate over the box around the sample's outline (:func:`limb_box`), per
-    rotation: units with ``rotation``, ``led``, ``box``, ``transposed`` and the rate mosaic ``rate``
+    rotation, in images of ``image_size`` (width, height; the capture's, as ``BrdfData.image_size``
+    and the camera calibration carry it): units with ``rotation``, ``led``, ``box``, ``transposed`` and the rate mosaic ``rate``
     (NaN where no exposure gave a valid value)."""
     from glossrig.core.capture import load_manifest
     from glossrig.core.extraction.extract import led_rate, led_sequence
@@ -141,9 +142,7 @@ def limb_rates(sample_dir, geometry: dict, camera: tuple) -> list[dict]:
         leds = single_leds(man, rot)
         if not leds:
             continue
-        seq0 = led_sequence(man, rot, leds[0])
-        size = tuple(man.read_raw(seq0[0], crop=(0, 0, 2, 2)).full_size)
-        box, transposed = limb_box(g, K, dist, rig.cylinder_radius, rig.sample_height, size)
+        box, transposed = limb_box(g, K, dist, rig.cylinder_radius, rig.sample_height, image_size)
         if box[2] <= box[0] or box[3] <= box[1]:
             continue
         for led in leds:
