@@ -25,6 +25,20 @@ def test_a_rotation_is_hidden_only_in_a_material_that_turns():
     assert set(blind_study.draw(57)[1]) == {"channel_response", "sample_rotation_offset"}
 
 
+def test_a_reused_null_capture_keeps_the_code_it_was_made_with(tmp_path, monkeypatch):
+    """--rediagnose diagnoses the kept null captures again: their records must still say which code
+    made each capture (before, a reused null's capture version was written as unknown)."""
+    from types import SimpleNamespace
+
+    made = {"commit": "0123abc", "dirty": False}
+    monkeypatch.setattr(blind_study, "has_raws", lambda cap: True)      # the capture is kept
+    a = SimpleNamespace(no_diagnose=True, diagnose_code={"commit": "fedcba9", "dirty": False})
+    rec = blind_study.null_capture(1, tmp_path, a, {}, None, prev={"null": 1, "code": {"capture": made}})
+    assert rec["capture_reused"] and rec["code"]["capture"] == made
+    # no earlier record: the version is not known, and the record says so rather than guessing
+    assert blind_study.null_capture(1, tmp_path, a, {}, None)["code"]["capture"] is None
+
+
 def _report(folder, verdict, dr, se, sig):
     folder.mkdir(parents=True)
     (folder / "report.json").write_text(json.dumps({

@@ -287,9 +287,7 @@ def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False, prev: di
     null, fit = bases[material]
     cap = work / f"t{k:03d}"
     t0 = time.time()
-    # a reused capture keeps the code version it was made with (its earlier record)
-    code = {"capture": (prev or {}).get("code", {}).get("capture") if reuse else code_version(),
-            "diagnose": a.diagnose_code}
+    code = record_code(a, reuse, prev)
     if not reuse:
         hide(cap, material, 1000 + k, hidden, null, fresh=any(CAUSES[c][2] == "twin" for c in absent))
     if getattr(a, "no_diagnose", False):        # the capture alone; --rediagnose diagnoses it later
@@ -318,15 +316,24 @@ def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False, prev: di
     return res
 
 
-def null_capture(j: int, work: Path, a, bases: dict, ref) -> dict:
+def record_code(a, reuse: bool, prev: dict | None) -> dict:
+    """The code versions a trial's or null's record names: a reused capture keeps the version its
+    earlier record ``prev`` names (None when there is none: not known, and not guessed), a new one is
+    made by this checkout; the diagnosis runs with this checkout's (``a.diagnose_code``)."""
+    return {"capture": (prev or {}).get("code", {}).get("capture") if reuse else code_version(),
+            "diagnose": a.diagnose_code}
+
+
+def null_capture(j: int, work: Path, a, bases: dict, ref, prev: dict | None = None) -> dict:
     """Independent null capture j (material j mod 3, seed NULL_SEED + j, no trial's seed): the null
-    spread of every cause's gain and fitted magnitude, measured apart from the trials."""
+    spread of every cause's gain and fitted magnitude, measured apart from the trials. ``prev``: the
+    null's earlier record (a reused capture keeps the code version recorded when it was made; None
+    when there is no earlier record)."""
     material = MATERIALS[j % len(MATERIALS)]
     cap = work / f"n{j:02d}"
     t0 = time.time()
     reuse = has_raws(cap)
-    # a reused null capture's code version is not known here (its earlier record was dropped): None
-    code = {"capture": None if reuse else code_version(), "diagnose": a.diagnose_code}
+    code = record_code(a, reuse, prev)
     if not reuse:
         simulate(cap, material, NULL_SEED + j)
     if getattr(a, "no_diagnose", False):
@@ -536,12 +543,13 @@ def main(argv=None):
                   flush=True)
         nstore = work / "nulls.json"
         nulls = json.loads(nstore.read_text()) if nstore.exists() else []
+        earlier = {n["null"]: n for n in nulls}
         if a.rediagnose:
             nulls = [n for n in nulls if not stale(n, a.diagnose_code)]     # made again below
         for j in range(a.nulls):
             if j in {n["null"] for n in nulls}:
                 continue
-            nulls.append(null_capture(j, work, a, bases, ref))
+            nulls.append(null_capture(j, work, a, bases, ref, prev=earlier.get(j)))
             nstore.write_text(json.dumps(nulls, indent=1))
             print(json.dumps({k: v for k, v in nulls[-1].items() if k != "causes"}), flush=True)
     Path(a.report).write_text(summarise(done, work))
