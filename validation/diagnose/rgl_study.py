@@ -812,7 +812,9 @@ def main(argv=None):
                     help="reuse every diagnose report found in WORK (default: a report made with other "
                          "core/diagnose sources than the current ones is made again)")
     ap.add_argument("--jobs", type=int, default=1, help="diagnoses run at a time (each its own process)")
-    ap.add_argument("--captures-only", action="store_true")
+    ap.add_argument("--captures-only", action="store_true",
+                    help="run the per-material stages (capture, extract, fit and, unless --no-diagnose, diagnose) "
+                         "and stop before the analysis and the report")
     ap.add_argument("--report-only", action="store_true",
                     help="write the report from what WORK holds: no capture, extraction, fit, diagnosis or analysis "
                          "is run (a material not analysed at this ANALYSIS_VERSION is listed as such)")
