@@ -326,3 +326,20 @@ def test_rgl_study_reuses_diagnoses_fits_only_for_the_same_captures(rgl_study, t
     assert rgl_study.fits_inputs(run, tmp_path)["capture"] != before["capture"]
     (tmp_path / "reference" / "capture.json").write_text('{"seed": 3}')
     assert rgl_study.fits_inputs(run, tmp_path)["reference"] != before["reference"]
+
+
+def test_rgl_study_takes_any_stock_mitsuba_material_as_a_study_material(rgl_study):
+    """--materials may name a scenes/materials XML outside the study's own two (a material the study
+    was not tuned on): it is captured through the mitsuba: spec at the anisotropic rotations, and its
+    truth is the BSDF itself; an RGL name stays a measured BRDF."""
+    from types import SimpleNamespace
+
+    a = SimpleNamespace(rotations="0", aniso_rotations="0,90")
+    for m in ("aniso_principled", "roughplastic_beckmann"):
+        assert m not in rgl_study.MATERIALS
+        spec = rgl_study.material_spec(m)
+        assert spec.startswith("mitsuba:") and spec.endswith(f"{m}.xml")
+        assert rgl_study.rotations_of(m, a) == "0,90"
+        assert type(rgl_study.truth_of(m)).__name__ == "MitsubaBRDF"
+    assert rgl_study.material_spec("satin_rosaline_rgb").startswith("measured:")
+    assert rgl_study.rotations_of("satin_rosaline_rgb", a) == "0"

@@ -57,9 +57,15 @@ REFERENCE = RGL / "paper_white_rgb.bsdf"
 TRUTH_GAIN_MIN = 0.10
 
 
+def is_mitsuba(m: str) -> bool:
+    """Whether study material M is a stock Mitsuba BSDF of scenes/materials (MITSUBA, or any other
+    XML there given with ``--materials``) rather than an RGL measurement."""
+    return m in MITSUBA or (ROOT / "scenes" / "materials" / f"{m}.xml").is_file()
+
+
 def material_spec(m: str) -> str:
-    """The ``--material`` of a study material: an RGL measurement or a scenes/materials XML."""
-    if m in MITSUBA:
+    """The ``--material`` of a study material: a scenes/materials XML or an RGL measurement."""
+    if is_mitsuba(m):
         return f"mitsuba:{ROOT / 'scenes' / 'materials' / (m + '.xml')}"
     return f"measured:{RGL / (m + '.bsdf')}"
 
@@ -78,7 +84,7 @@ def truth_of(m: str):
 def rotations_of(m: str, a) -> str:
     """Sample rotations of a material's capture: ``--aniso-rotations`` for the anisotropic Mitsuba
     materials, ``--rotations`` for the others."""
-    return a.aniso_rotations if m in MITSUBA else a.rotations
+    return a.aniso_rotations if is_mitsuba(m) else a.rotations
 
 
 def all_rotations(a) -> str:
@@ -806,7 +812,9 @@ def main(argv=None):
     ap.add_argument("--rotations", default="0,90", help="sample rotations of the real (isotropic) materials")
     ap.add_argument("--aniso-rotations", default="0,90", help="sample rotations of the anisotropic Mitsuba materials")
     ap.add_argument("--leds", default="middle", help="LEDs of every capture (a row name or ids)")
-    ap.add_argument("--materials", default=",".join(MATERIALS))
+    ap.add_argument("--materials", default=",".join(MATERIALS),
+                    help="comma-separated: RGL measurements (../shared/data/rgl/NAME.bsdf) or stock Mitsuba BSDFs "
+                         "(scenes/materials/NAME.xml; their captures use --aniso-rotations)")
     ap.add_argument("--no-diagnose", dest="diagnose", action="store_false")
     ap.add_argument("--keep-diagnose", action="store_true",
                     help="reuse every diagnose report found in WORK (default: a report made with other "
