@@ -687,7 +687,8 @@ def markdown(results: dict, a) -> str:
          "wrong, and what diagnose names (issues 7 and 14)", "",
          "Command of this report (resumable; the defaults are scale 0.25 and rotations 0,90 for every material):", "",
          f"    nice -n 10 python -m validation.diagnose.rgl_study --work WORK --scale {a.scale:g} "
-         f"--rotations {a.rotations} --aniso-rotations {a.aniso_rotations} --leds {a.leds} --fit-rows {a.fit_rows}",
+         f"--rotations {a.rotations} --aniso-rotations {a.aniso_rotations} --leds {a.leds} --fit-rows {a.fit_rows}"
+         + ("" if a.materials == ",".join(MATERIALS) else f" --materials {a.materials}"),
          "        [--camera CAMERA.json --lamps LAMPS.json]      # optional: reuse calibrations of this rig and scale",
          "        [--keep-diagnose]      # reuse diagnose reports made with other core/diagnose sources", "",
          f"Report written at commit {describe(code_version())}; core/diagnose sources sha256 "
@@ -698,7 +699,8 @@ def markdown(results: dict, a) -> str:
          "report was made with is listed per material (commits do not show uncommitted changes).", "",
          f"Materials: the RGL measurements of ../shared/data/rgl (Dupuy & Jakob, \"An Adaptive Parameterization "
          f"for Efficient Material Acquisition and Rendering\", ACM TOG 37(6), SIGGRAPH Asia 2018), rendered by "
-         f"Mitsuba's `measured` plugin, and two anisotropic stock Mitsuba BSDFs ({', '.join(MITSUBA)}; "
+         f"Mitsuba's `measured` plugin, and stock Mitsuba BSDFs (here: "
+         f"{', '.join(m for m in a.materials.split(',') if is_mitsuba(m)) or 'none'}; "
          f"scenes/materials, truth: the BSDF itself through `glossrig.twin.mitsuba_material`). Captures: scale {a.scale}, LEDs `{a.leds}`, rotations {a.rotations} (anisotropic Mitsuba materials: {a.aniso_rotations}), "
          f"one repeat, thesis LED fluctuations and sensor noise; diffuse reference: the real white paper "
          f"(`measured:paper_white_rgb.bsdf`), extraction with the thesis normalisation (Lambertian, albedo "
