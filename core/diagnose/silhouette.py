@@ -128,8 +128,8 @@ def limb_box(geom, K, dist, radius: float, height: float, size) -> tuple[tuple[i
 def limb_rates(sample_dir, geometry: dict, camera: tuple, image_size: tuple[int, int]) -> list[dict]:
     """Every LED's HDR rate over the box around the sample's outline (:func:`limb_box`), per
     rotation, in images of ``image_size`` (width, height; the capture's, as ``BrdfData.image_size``
-    and the camera calibration carry it): units with ``rotation``, ``led``, ``box``, ``transposed`` and the rate mosaic ``rate``
-    (NaN where no exposure gave a valid value)."""
+    and the camera calibration carry it): units with ``rotation``, ``led``, ``box``, ``transposed``
+    and the rate mosaic ``rate`` (NaN where no exposure gave a valid value)."""
     from glossrig.core.capture import load_manifest
     from glossrig.core.extraction.extract import led_rate, led_sequence
     from glossrig.core.rig import load_rig

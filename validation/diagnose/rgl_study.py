@@ -58,15 +58,19 @@ TRUTH_GAIN_MIN = 0.10
 
 
 def is_mitsuba(m: str) -> bool:
-    """Whether study material M is a stock Mitsuba BSDF of scenes/materials (MITSUBA, or any other
-    XML there given with ``--materials``) rather than an RGL measurement."""
-    return m in MITSUBA or (ROOT / "scenes" / "materials" / f"{m}.xml").is_file()
+    """Whether study material M is a stock Mitsuba BSDF of the packaged scenes/materials (MITSUBA, or
+    any other XML there given with ``--materials``) rather than an RGL measurement."""
+    from glossrig.core.models.materials import MATERIALS_DIR
+
+    return (MATERIALS_DIR / f"{m}.xml").is_file()
 
 
 def material_spec(m: str) -> str:
     """The ``--material`` of a study material: a scenes/materials XML or an RGL measurement."""
+    from glossrig.core.models.materials import MATERIALS_DIR
+
     if is_mitsuba(m):
-        return f"mitsuba:{ROOT / 'scenes' / 'materials' / (m + '.xml')}"
+        return f"mitsuba:{MATERIALS_DIR / (m + '.xml')}"
     return f"measured:{RGL / (m + '.bsdf')}"
 
 
@@ -82,8 +86,9 @@ def truth_of(m: str):
 
 
 def rotations_of(m: str, a) -> str:
-    """Sample rotations of a material's capture: ``--aniso-rotations`` for the anisotropic Mitsuba
-    materials, ``--rotations`` for the others."""
+    """Sample rotations of a material's capture: ``--aniso-rotations`` for the stock Mitsuba BSDFs
+    (the study's own two are anisotropic; another one given with ``--materials`` is run at the same
+    rotations, anisotropic or not), ``--rotations`` for the RGL measurements."""
     return a.aniso_rotations if is_mitsuba(m) else a.rotations
 
 
@@ -701,7 +706,7 @@ def markdown(results: dict, a) -> str:
          f"for Efficient Material Acquisition and Rendering\", ACM TOG 37(6), SIGGRAPH Asia 2018), rendered by "
          f"Mitsuba's `measured` plugin, and stock Mitsuba BSDFs (here: "
          f"{', '.join(m for m in a.materials.split(',') if is_mitsuba(m)) or 'none'}; "
-         f"scenes/materials, truth: the BSDF itself through `glossrig.twin.mitsuba_material`). Captures: scale {a.scale}, LEDs `{a.leds}`, rotations {a.rotations} (anisotropic Mitsuba materials: {a.aniso_rotations}), "
+         f"scenes/materials, truth: the BSDF itself through `glossrig.twin.mitsuba_material`). Captures: scale {a.scale}, LEDs `{a.leds}`, rotations {a.rotations} (stock Mitsuba BSDFs: {a.aniso_rotations}), "
          f"one repeat, thesis LED fluctuations and sensor noise; diffuse reference: the real white paper "
          f"(`measured:paper_white_rgb.bsdf`), extraction with the thesis normalisation (Lambertian, albedo "
          f"{ALBEDO}); `glossrig fit` (luminance) and `glossrig diagnose --reference-brdf` (which renormalises the data "
