@@ -343,3 +343,30 @@ def test_rgl_study_takes_any_stock_mitsuba_material_as_a_study_material(rgl_stud
         assert type(rgl_study.truth_of(m)).__name__ == "MitsubaBRDF"
     assert rgl_study.material_spec("satin_rosaline_rgb").startswith("measured:")
     assert rgl_study.rotations_of("satin_rosaline_rgb", a) == "0"
+
+
+def test_rgl_study_takes_a_mitsuba_xml_file_by_its_path(rgl_study, monkeypatch, tmp_path, capsys):
+    """--materials may give a Mitsuba BSDF XML file anywhere by its path (a material no one here
+    wrote need not be added to the package): it is named by its stem, captured through a mitsuba:
+    spec of that file and its truth is the BSDF itself. A missing file, or a name given twice,
+    stops the study with exit status 2 and a message naming the entry."""
+    import shutil
+
+    from glossrig.core.models.materials import MATERIALS_DIR
+
+    monkeypatch.setattr(rgl_study, "XML_FILES", {})
+    xml = tmp_path / "my_plastic.xml"
+    shutil.copy(MATERIALS_DIR / "roughplastic_beckmann.xml", xml)
+    names = rgl_study.study_materials(f"satin_rosaline_rgb, {xml}")
+    assert names == ["satin_rosaline_rgb", "my_plastic"]
+    assert rgl_study.is_mitsuba("my_plastic") and not rgl_study.is_mitsuba("satin_rosaline_rgb")
+    assert rgl_study.material_spec("my_plastic") == f"mitsuba:{xml.resolve()}"
+    assert type(rgl_study.truth_of("my_plastic")).__name__ == "MitsubaBRDF"
+
+    for bad, said in ((str(tmp_path / "absent.xml"), "absent.xml: no such Mitsuba BSDF file"),
+                      (f"{xml},{xml}", "my_plastic is given twice")):
+        with pytest.raises(SystemExit) as e:
+            rgl_study.main(["--work", str(tmp_path / "work"), "--materials", bad])
+        assert e.value.code == 2
+        assert said in capsys.readouterr().err
+    assert not (tmp_path / "work").exists()

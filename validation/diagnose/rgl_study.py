@@ -57,18 +57,46 @@ REFERENCE = RGL / "paper_white_rgb.bsdf"
 TRUTH_GAIN_MIN = 0.10
 
 
+#: study materials given with ``--materials`` as a path to a Mitsuba BSDF XML outside scenes/materials:
+#: name (the file's stem, which names its files in WORK) -> path (:func:`study_materials`)
+XML_FILES: dict[str, Path] = {}
+
+
+def study_materials(spec: str) -> list[str]:
+    """The names of ``--materials``: each entry an RGL measurement's name, a stock BSDF of scenes/materials
+    by name, or a path to a Mitsuba BSDF XML anywhere (``.xml``; named by its stem and remembered in
+    :data:`XML_FILES`), so that a material no one here wrote can be studied without adding it to the
+    package. ValueError for a missing XML file, or two entries of one name (their files in WORK would be
+    the same)."""
+    names = []
+    for entry in (e.strip() for e in spec.split(",") if e.strip()):
+        if entry.endswith(".xml"):
+            path = Path(entry).expanduser().resolve()
+            if not path.is_file():
+                raise ValueError(f"--materials: {entry}: no such Mitsuba BSDF file")
+            XML_FILES[path.stem] = path
+            entry = path.stem
+        if entry in names:
+            raise ValueError(f"--materials: {entry} is given twice (its files in WORK would be shared)")
+        names.append(entry)
+    return names
+
+
 def is_mitsuba(m: str) -> bool:
-    """Whether study material M is a stock Mitsuba BSDF of the packaged scenes/materials (MITSUBA, or
-    any other XML there given with ``--materials``) rather than an RGL measurement."""
+    """Whether study material M is a stock Mitsuba BSDF (of the packaged scenes/materials: MITSUBA or any
+    other XML there given with ``--materials``, or an XML file given by its path) rather than an RGL
+    measurement."""
     from glossrig.core.models.materials import MATERIALS_DIR
 
-    return (MATERIALS_DIR / f"{m}.xml").is_file()
+    return m in XML_FILES or (MATERIALS_DIR / f"{m}.xml").is_file()
 
 
 def material_spec(m: str) -> str:
-    """The ``--material`` of a study material: a scenes/materials XML or an RGL measurement."""
+    """The ``--material`` of a study material: a Mitsuba BSDF XML or an RGL measurement."""
     from glossrig.core.models.materials import MATERIALS_DIR
 
+    if m in XML_FILES:
+        return f"mitsuba:{XML_FILES[m]}"
     if is_mitsuba(m):
         return f"mitsuba:{MATERIALS_DIR / (m + '.xml')}"
     return f"measured:{RGL / (m + '.bsdf')}"
@@ -113,7 +141,7 @@ def captures(work: Path, a) -> dict:
     todo = []
     ref = capture(work / "reference", f"measured:{REFERENCE}", a.scale, 3, all_rotations(a), 1, leds=a.leds)
     out = {}
-    for k, m in enumerate(a.materials.split(",")):
+    for k, m in enumerate(a.names):
         prov = work / "provenance.json"
         made = not capture_complete(work / m)
         cap = capture(work / m, material_spec(m), a.scale, 10 + MATERIALS.index(m) if m in MATERIALS else 10 + k,
@@ -179,7 +207,7 @@ def diagnose_code() -> str:
 def found(work: Path, a) -> dict:
     """``--report-only``: each material's files in WORK as :func:`captures` names them, nothing run."""
     return {m: {"capture": str(work / m), "samples": str(work / f"{m}.parquet"), "fit": str(work / f"{m}.fit.json"),
-                "diagnose": str(work / f"{m}.diagnose")} for m in a.materials.split(",")}
+                "diagnose": str(work / f"{m}.diagnose")} for m in a.names}
 
 
 def _stage(step, *args) -> str | None:
@@ -705,7 +733,7 @@ def markdown(results: dict, a) -> str:
          f"Materials: the RGL measurements of ../shared/data/rgl (Dupuy & Jakob, \"An Adaptive Parameterization "
          f"for Efficient Material Acquisition and Rendering\", ACM TOG 37(6), SIGGRAPH Asia 2018), rendered by "
          f"Mitsuba's `measured` plugin, and stock Mitsuba BSDFs (here: "
-         f"{', '.join(m for m in a.materials.split(',') if is_mitsuba(m)) or 'none'}; "
+         f"{', '.join(m for m in a.names if is_mitsuba(m)) or 'none'}; "
          f"scenes/materials, truth: the BSDF itself through `glossrig.twin.mitsuba_material`). Captures: scale {a.scale}, LEDs `{a.leds}`, rotations {a.rotations} (stock Mitsuba BSDFs: {a.aniso_rotations}), "
          f"one repeat, thesis LED fluctuations and sensor noise; diffuse reference: the real white paper "
          f"(`measured:paper_white_rgb.bsdf`), extraction with the thesis normalisation (Lambertian, albedo "
@@ -820,8 +848,9 @@ def main(argv=None):
     ap.add_argument("--aniso-rotations", default="0,90", help="sample rotations of the anisotropic Mitsuba materials")
     ap.add_argument("--leds", default="middle", help="LEDs of every capture (a row name or ids)")
     ap.add_argument("--materials", default=",".join(MATERIALS),
-                    help="comma-separated: RGL measurements (../shared/data/rgl/NAME.bsdf) or stock Mitsuba BSDFs "
-                         "(scenes/materials/NAME.xml; their captures use --aniso-rotations)")
+                    help="comma-separated: RGL measurements (../shared/data/rgl/NAME.bsdf), stock Mitsuba BSDFs "
+                         "(scenes/materials/NAME.xml) or paths to Mitsuba BSDF XML files (named by their stem); "
+                         "Mitsuba BSDFs are captured at --aniso-rotations")
     ap.add_argument("--no-diagnose", dest="diagnose", action="store_false")
     ap.add_argument("--keep-diagnose", action="store_true",
                     help="reuse every diagnose report found in WORK (default: a report made with other "
@@ -836,6 +865,10 @@ def main(argv=None):
     ap.add_argument("--fit-rows", type=int, default=40_000, help="rows (random) the lobe fits use")
     ap.add_argument("--report", default=str(ROOT / "validation/diagnose/rgl_study.md"))
     a = ap.parse_args(argv)
+    try:
+        a.names = study_materials(a.materials)
+    except ValueError as e:
+        ap.error(str(e))                            # exit status 2, with the usage
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
     runs = found(work, a) if a.report_only else captures(work, a)
