@@ -734,7 +734,7 @@ def markdown(results: dict, a) -> str:
          f"for Efficient Material Acquisition and Rendering\", ACM TOG 37(6), SIGGRAPH Asia 2018), rendered by "
          f"Mitsuba's `measured` plugin, and stock Mitsuba BSDFs (here: "
          f"{', '.join(m for m in a.names if is_mitsuba(m)) or 'none'}; "
-         f"scenes/materials, truth: the BSDF itself through `glossrig.twin.mitsuba_material`). Captures: scale {a.scale}, LEDs `{a.leds}`, rotations {a.rotations} (stock Mitsuba BSDFs: {a.aniso_rotations}), "
+         f"scenes/materials/NAME.xml or the XML file given in --materials, truth: the BSDF itself through `glossrig.twin.mitsuba_material`). Captures: scale {a.scale}, LEDs `{a.leds}`, rotations {a.rotations} (stock Mitsuba BSDFs: {a.aniso_rotations}), "
          f"one repeat, thesis LED fluctuations and sensor noise; diffuse reference: the real white paper "
          f"(`measured:paper_white_rgb.bsdf`), extraction with the thesis normalisation (Lambertian, albedo "
          f"{ALBEDO}); `glossrig fit` (luminance) and `glossrig diagnose --reference-brdf` (which renormalises the data "
