@@ -6,6 +6,7 @@ inputs that do not belong together."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -348,8 +349,8 @@ def test_rgl_study_takes_any_stock_mitsuba_material_as_a_study_material(rgl_stud
 def test_rgl_study_takes_a_mitsuba_xml_file_by_its_path(rgl_study, monkeypatch, tmp_path, capsys):
     """--materials may give a Mitsuba BSDF XML file anywhere by its path (a material no one here
     wrote need not be added to the package): it is named by its stem, captured through a mitsuba:
-    spec of that file and its truth is the BSDF itself. A missing file, or a name given twice,
-    stops the study with exit status 2 and a message naming the entry."""
+    spec of that file and its truth is the BSDF itself. A missing file, a name given twice, or a file
+    named as another study material stops the study with exit status 2 and a message naming the entry."""
     import shutil
 
     from glossrig.core.models.materials import MATERIALS_DIR
@@ -357,6 +358,8 @@ def test_rgl_study_takes_a_mitsuba_xml_file_by_its_path(rgl_study, monkeypatch, 
     monkeypatch.setattr(rgl_study, "XML_FILES", {})
     xml = tmp_path / "my_plastic.xml"
     shutil.copy(MATERIALS_DIR / "roughplastic_beckmann.xml", xml)
+    clash = tmp_path / "satin_rosaline_rgb.xml"       # an RGL measurement's name: WORK would mix the two
+    shutil.copy(xml, clash)
     names = rgl_study.study_materials(f"satin_rosaline_rgb, {xml}")
     assert names == ["satin_rosaline_rgb", "my_plastic"]
     assert rgl_study.is_mitsuba("my_plastic") and not rgl_study.is_mitsuba("satin_rosaline_rgb")
@@ -364,9 +367,12 @@ def test_rgl_study_takes_a_mitsuba_xml_file_by_its_path(rgl_study, monkeypatch, 
     assert type(rgl_study.truth_of("my_plastic")).__name__ == "MitsubaBRDF"
 
     for bad, said in ((str(tmp_path / "absent.xml"), "absent.xml: no such Mitsuba BSDF file"),
-                      (f"{xml},{xml}", "my_plastic is given twice")):
-        with pytest.raises(SystemExit) as e:
-            rgl_study.main(["--work", str(tmp_path / "work"), "--materials", bad])
-        assert e.value.code == 2
-        assert said in capsys.readouterr().err
+                      (f"{xml},{xml}", "my_plastic is given twice"),
+                      (str(clash), "its name satin_rosaline_rgb is already a study material's")):
+        with pytest.raises(ValueError, match=re.escape(said)):
+            rgl_study.study_materials(bad)
+    with pytest.raises(SystemExit) as e:               # the command line: exit status 2, the entry named
+        rgl_study.main(["--work", str(tmp_path / "work"), "--materials", str(clash)])
+    assert e.value.code == 2
+    assert "satin_rosaline_rgb.xml: its name satin_rosaline_rgb is already" in capsys.readouterr().err
     assert not (tmp_path / "work").exists()

@@ -66,14 +66,21 @@ def study_materials(spec: str) -> list[str]:
     """The names of ``--materials``: each entry an RGL measurement's name, a stock BSDF of scenes/materials
     by name, or a path to a Mitsuba BSDF XML anywhere (``.xml``; named by its stem and remembered in
     :data:`XML_FILES`), so that a material no one here wrote can be studied without adding it to the
-    package. ValueError for a missing XML file, or two entries of one name (their files in WORK would be
-    the same)."""
+    package. ValueError for a missing XML file, two entries of one name (their files in WORK would be
+    the same), or an XML file whose stem names an RGL measurement or another packaged material (WORK would
+    hold that material's files under its name)."""
+    from glossrig.core.models.materials import MATERIALS_DIR
+
     names = []
     for entry in (e.strip() for e in spec.split(",") if e.strip()):
         if entry.endswith(".xml"):
             path = Path(entry).expanduser().resolve()
             if not path.is_file():
                 raise ValueError(f"--materials: {entry}: no such Mitsuba BSDF file")
+            packaged = MATERIALS_DIR / f"{path.stem}.xml"
+            if (RGL / f"{path.stem}.bsdf").is_file() or (packaged.is_file() and packaged.resolve() != path):
+                raise ValueError(f"--materials: {entry}: its name {path.stem} is already a study material's "
+                                 "(its files in WORK would be that material's); rename the file")
             XML_FILES[path.stem] = path
             entry = path.stem
         if entry in names:
