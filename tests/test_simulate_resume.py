@@ -114,6 +114,31 @@ def test_resume_refuses_a_folder_without_a_simulated_capture(tmp_path):
     assert "capture.json: --resume: this capture was not made by glossrig simulate" in r.stderr
 
 
+def test_resume_refuses_a_capture_whose_material_file_was_edited(tmp_path):
+    """An interrupted capture of a ``measured:`` file resumed after the file was edited in place
+    would finish with another material: ``glossrig simulate --resume`` refuses, naming the
+    material's sha256, and changes nothing."""
+    from glossrig.core.capture import Manifest
+    from glossrig.core.rig import load_rig
+    from glossrig.twin.simulate import OPTIONS_KEY, sample_options, twin_effects
+
+    bsdf = tmp_path / "m.bsdf"
+    bsdf.write_bytes(b"first version")
+    opts = sample_options(load_rig(RIG), f"measured:{bsdf}", "6", [0.0], 1, 0.05, 3, twin_effects(None, True), 1)
+    out = tmp_path / "cap"
+    out.mkdir()
+    Manifest(out, "rig.toml", "m", complete=False, meta={OPTIONS_KEY: opts}).save()
+    before = (out / MANIFEST).read_bytes()
+    bsdf.write_bytes(b"second version")
+    r = subprocess.run([sys.executable, "-m", "glossrig.cli.main", "simulate", "--no-progress", "--rig", str(RIG),
+                        "--material", f"measured:{bsdf}", "--leds", "6", "--rotations", "0", "--scale", "0.05",
+                        "--seed", "3", "--ideal", "--spp", "1", "--out", str(out), "--resume"],
+                       capture_output=True, text=True)
+    assert r.returncode == 2, r.stderr
+    assert "other options (material_sha256: capture '" in r.stderr and "Traceback" not in r.stderr
+    assert (out / MANIFEST).read_bytes() == before and sorted(p.name for p in out.iterdir()) == [MANIFEST]
+
+
 @pytest.mark.mitsuba
 def test_resumed_checkerboard_views_are_byte_identical(tmp_path, monkeypatch):
     from glossrig.twin import dng

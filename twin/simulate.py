@@ -34,7 +34,7 @@ from glossrig.core.atomic import atomic_write_json
 from glossrig.core.capture import (TRUTH, ImageEntry, Manifest, check_rotation_tags, image_stem, load_manifest,
                                    rotation_tag, sha256_file)
 from glossrig.core.errors import InputError
-from glossrig.core.models.materials import parse_material
+from glossrig.core.models.materials import material_sha256, parse_material
 from glossrig.core.progress import progress_enabled
 from glossrig.core.rig import load_rig
 
@@ -78,8 +78,23 @@ OPTIONS_KEY = "simulate"
 
 def plan_sha256(options: dict) -> str:
     """The sha256 of a simulated capture's plan (the manifest's ``plan.sha256``): the plan's
-    text is the sorted JSON of the options that determine the images (``OPTIONS_KEY``)."""
-    return hashlib.sha256(json.dumps(options, sort_keys=True).encode()).hexdigest()
+    text is the sorted JSON of the options that determine the images (``OPTIONS_KEY``), the
+    material as :func:`capture_identity` names it."""
+    return hashlib.sha256(json.dumps(capture_identity(options), sort_keys=True).encode()).hexdigest()
+
+
+def capture_identity(options: dict) -> dict:
+    """What a capture's options say about its images: the options, but a material read from a
+    file whose sha256 is recorded (``material_sha256``) is named by the kind of its spec
+    (``measured``, ``mitsuba``, or the packaged name) and that sha256 alone - the file's path
+    says where the file was, not what it was, so the same material reached from another
+    checkout or folder is the same capture. Options without the sha256 (inline ``ward:`` and
+    ``lambert:`` specs, or the record of a capture made before it was recorded) are
+    themselves."""
+    if options.get("material_sha256") is None:
+        return dict(options)
+    spec = str(options.get("material", ""))
+    return {**options, "material": spec.split(":", 1)[0] if spec.startswith(("measured:", "mitsuba:")) else spec}
 
 
 def twin_effects(effects_text: str | None, ideal: bool = False) -> dict:
@@ -99,9 +114,36 @@ def sample_options(rig, material_spec: str, leds_spec, rotations, repeats: int, 
     if len(set(rotations)) != len(rotations):
         raise InputError(f"--rotations lists an angle twice: {rotations}")
     check_rotation_tags(rotations)
-    return {"target": "sample", "rig_name": rig.name, "material": material_spec, "leds": list(led_ids),
+    return {"target": "sample", "rig_name": rig.name, "material": material_spec,
+            "material_sha256": material_sha256(material_spec), "leds": list(led_ids),
             "rotations": rotations, "repeats": int(repeats), "scale": float(scale), "seed": int(seed),
             "effects": dict(sorted(effects.items())), "spp": int(spp)}
+
+
+def checkerboard_options(rig, scale: float, seed: int, views: int, spp: int) -> dict:
+    """The options that determine a checkerboard capture's views, as its manifest records them."""
+    return {"target": "checkerboard", "rig_name": rig.name, "scale": float(scale), "seed": int(seed),
+            "views": int(views), "spp": int(spp)}
+
+
+def differing_options(recorded: dict, options: dict) -> list[str]:
+    """The keys in which a capture's recorded simulate options (``OPTIONS_KEY``) and a
+    command's differ, sorted; a key one of them lacks differs (``material_sha256`` is missing
+    from the record of a capture made before glossrig recorded it). Where both record the
+    material's sha256 the material is compared by :func:`capture_identity` (its content, not
+    its path); otherwise by its spec's text."""
+    if recorded.get("material_sha256") is not None and options.get("material_sha256") is not None:
+        recorded, options = capture_identity(recorded), capture_identity(options)
+    return [k for k in sorted(set(recorded) | set(options)) if recorded.get(k) != options.get(k)]
+
+
+def describe_differences(recorded: dict, options: dict, keys: list[str], recorded_as: str = "capture",
+                         given_as: str = "now") -> str:
+    """``key: capture X, now Y; ...`` for the keys of :func:`differing_options`; a key the
+    record lacks is said to be unrecorded (a capture of an earlier glossrig)."""
+    return "; ".join(f"{k}: {recorded_as} {recorded[k]!r}, {given_as} {options.get(k)!r}" if k in recorded else
+                     f"{k}: not recorded by the glossrig that made the capture, {given_as} {options.get(k)!r}"
+                     for k in keys)
 
 
 def _check_resume(out: Path, options: dict) -> bool:
@@ -124,9 +166,9 @@ def _check_resume(out: Path, options: dict) -> bool:
     if not isinstance(old, dict):
         raise InputError("--resume: this capture was not made by glossrig simulate (its manifest records no "
                          "simulate options); nothing was changed", path=man)
-    diff = [k for k in sorted(set(old) | set(options)) if old.get(k) != options.get(k)]
+    diff = differing_options(old, options)
     if diff:
-        what = "; ".join(f"{k}: capture {old.get(k)!r}, now {options.get(k)!r}" for k in diff)
+        what = describe_differences(old, options, diff)
         raise InputError(f"--resume: the capture was made with other options ({what}); rerun with the original "
                          "options or choose another --out (nothing was changed)", path=man)
     return True
@@ -158,8 +200,7 @@ def simulate(rig_path, material_spec: str, leds_spec, rotations, repeats: int, s
     if target == "checkerboard":
         if views < 1:
             raise InputError(f"--views must be >= 1, got {views}")
-        options = {"target": target, "rig_name": rig.name, "scale": float(scale), "seed": int(seed),
-                   "views": int(views), "spp": int(spp)}
+        options = checkerboard_options(rig, scale, seed, views, spp)
         resuming = _check_resume(out, options) if resume else False
         prepare_out(out, resume=resume)
         return simulate_checkerboard(rig, out, scale=scale, seed=seed, views=views, spp=spp, progress=progress,

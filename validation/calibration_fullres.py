@@ -227,4 +227,6 @@ def report(r: dict, args) -> str:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from validation.common import run_main
+
+    raise SystemExit(run_main(main))

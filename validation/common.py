@@ -7,10 +7,10 @@ fit), each step a real ``glossrig`` command, so a study runs what a user runs.
   the verb, the exit status, the command and - where the output was captured - the
   last lines of its error output.
 * :func:`simulate` / :func:`capture` / :func:`checkerboard`: twin captures with the
-  studies' reuse rule (a complete capture is reused; a partial one is removed and
-  made again, or finished with ``--resume``, or every capture is made anew; or, for
-  :func:`capture`, a capture of the first LEDs of a list is extended to the whole
-  list, :func:`extend_leds`);
+  studies' reuse rule (a complete capture is reused - only when it was made by the same
+  command, :func:`check_reuse`; a partial one is removed and made again, or finished with
+  ``--resume``, or every capture is made anew; or, for :func:`capture`, a capture of the
+  first LEDs of a list is extended to the whole list, :func:`extend_leds`);
 * :func:`camera` and :func:`calibrate`: the camera and lamp calibration of the nominal
   rig on the twin, resumable in a folder;
 * :func:`extract` and :func:`fit`: one step each, skipped when its output exists;
@@ -19,6 +19,8 @@ fit), each step a real ``glossrig`` command, so a study runs what a user runs.
   the calibration's own error).
 
 Every helper passes ``stdout``/``stderr``/``echo``/``cwd`` on to :func:`glossrig`.
+:func:`run_main` runs a study's ``main`` as the command line does: bad input (an
+InputError) is one line on stderr and exit status 2, not a traceback.
 """
 from __future__ import annotations
 
@@ -83,6 +85,25 @@ def glossrig(*args, stdout: bool = True, stderr: bool = True, echo: str | None =
     return r
 
 
+def run_main(main, *args) -> int:
+    """``main(*args)`` of a study, as the command line runs a verb (glossrig.cli.main): bad input
+    (a :class:`~glossrig.core.errors.GlossrigError`, e.g. a work folder holding a capture made
+    with other options) is one line on stderr, ``error: MESSAGE``, and exit status 2; a failed
+    ``glossrig`` child is its :class:`GlossrigFailed` message (the verb, the command, the end of
+    its error output) and the child's own exit status, not a traceback. ``main``'s own return
+    value is the status otherwise (None: 0). Use: ``raise SystemExit(run_main(main))``."""
+    from glossrig.core.errors import GlossrigError
+
+    try:
+        return int(main(*args) or 0)
+    except GlossrigError as e:
+        print(f"error: {e}", file=sys.stderr, flush=True)
+        return 2
+    except GlossrigFailed as e:
+        print(f"error: {e}", file=sys.stderr, flush=True)
+        return int(e.returncode) or 1
+
+
 # ------------------------------------------------------------------ twin captures
 
 def needs_capture(out: Path) -> bool:
@@ -106,11 +127,14 @@ def simulate(out: Path, *args, rig: Path = RIG, extra=(), mode: str = "reuse", *
             shutil.rmtree(out)
     elif mode == "resume":
         if capture_complete(out):
+            check_reuse(out, *args, rig=rig, extra=extra)
             if run.get("echo"):
                 print(f"reusing the complete capture {out}", flush=True)
             return out
         resume = ["--resume"] if out.exists() and any(out.iterdir()) else []
     elif mode == "reuse":
+        if capture_complete(out):
+            check_reuse(out, *args, rig=rig, extra=extra)
         if not needs_capture(out):
             if run.get("echo"):
                 print(f"reusing the complete capture {out}", flush=True)
@@ -119,6 +143,47 @@ def simulate(out: Path, *args, rig: Path = RIG, extra=(), mode: str = "reuse", *
         raise ValueError(f"mode {mode!r}: reuse, resume or fresh")
     glossrig("simulate", "--rig", rig, *args, "--no-progress", "--out", out, *extra, *resume, **run)
     return out
+
+
+def check_reuse(out: Path, *args, rig: Path = RIG, extra=()) -> None:
+    """A complete capture in OUT may stand for ``glossrig simulate --rig RIG ARGS EXTRA`` only
+    when that command made it: the simulate options its manifest records equal the command's
+    (:func:`simulate_options`: the material's file content by its sha256, the LEDs, rotations,
+    scale, seed, effects, ...) and its copy of the rig description (``rig.toml``) is the rig
+    file's bytes. Otherwise an InputError names OUT and every difference, and nothing is
+    removed: a study run again into one WORK with other arguments stops instead of measuring
+    the old capture as if it were the new one.
+
+    An option the capture does not record (``material_sha256``, recorded since 2026-12-04)
+    cannot be compared: the capture is reused with a warning on stderr naming the option, so
+    work folders made before stay usable and say what was not checked."""
+    from glossrig.twin.simulate import OPTIONS_KEY, RIG_COPY, describe_differences, differing_options
+
+    out = Path(out)
+    options = simulate_options(*args, rig=rig, extra=extra)
+    recorded = load_manifest(out).meta.get(OPTIONS_KEY)
+    where = out / "capture.json"
+    if not isinstance(recorded, dict):
+        raise InputError("the complete capture here was not made by glossrig simulate (its manifest records no "
+                         "simulate options), so it cannot stand for the study's capture; remove it or choose "
+                         "another work folder (nothing was changed)", path=where)
+    diff = differing_options(recorded, options)
+    unrecorded = [k for k in diff if k not in recorded]
+    refused = [k for k in diff if k in recorded]
+    if refused:
+        raise InputError(f"the complete capture here was made with other options "
+                         f"({describe_differences(recorded, options, refused)}); remove it or choose another work "
+                         "folder (nothing was changed)", path=where)
+    from glossrig.core.rig import load_rig
+
+    copy = out / RIG_COPY
+    if not copy.is_file() or copy.read_bytes() != Path(load_rig(rig).path).read_bytes():
+        raise InputError(f"the complete capture here was made with another rig description than {rig} (its copy "
+                         f"{RIG_COPY} differs); remove it or choose another work folder (nothing was changed)",
+                         path=where)
+    if unrecorded:
+        print(f"warning: {where}: reused without checking {describe_differences(recorded, options, unrecorded)}",
+              file=sys.stderr, flush=True)
 
 
 def extend_leds(out: Path, leds: list[int], *, options: dict | None = None) -> bool:
@@ -143,7 +208,7 @@ def extend_leds(out: Path, leds: list[int], *, options: dict | None = None) -> b
     before the manifest is written (atomically, last): a refused call (InputError: other
     options; LEDs that do not begin with the capture's own, in another order or fewer; a
     plan this cannot extend) leaves the capture as it was."""
-    from glossrig.twin.simulate import OPTIONS_KEY, plan_sha256
+    from glossrig.twin.simulate import OPTIONS_KEY, describe_differences, differing_options, plan_sha256
 
     out = Path(out)
     if not (out / "capture.json").is_file():
@@ -157,9 +222,9 @@ def extend_leds(out: Path, leds: list[int], *, options: dict | None = None) -> b
     leds = [int(x) for x in leds]
     new = {**opts, "leds": leds}
     if options is not None:
-        diff = [k for k in sorted(set(new) | set(options)) if new.get(k) != options.get(k)]
+        diff = differing_options(new, options)
         if diff:
-            what = "; ".join(f"{k}: extended capture {new.get(k)!r}, command {options.get(k)!r}" for k in diff)
+            what = describe_differences(new, options, diff, recorded_as="extended capture", given_as="command")
             raise InputError(f"cannot extend the capture to LEDs {leds}: the simulate command that would complete "
                              f"it has other options ({what}); nothing was changed", path=where)
     if leds == old:
@@ -183,14 +248,15 @@ def extend_leds(out: Path, leds: list[int], *, options: dict | None = None) -> b
 
 
 def simulate_options(*args, rig: Path = RIG, extra=()) -> dict:
-    """The options ``glossrig simulate --rig RIG ARGS EXTRA`` of a sample capture records in
-    its manifest (``glossrig.twin.simulate.sample_options``), its command line read by the
-    verb's own parser; a bad argument is an InputError."""
+    """The options ``glossrig simulate --rig RIG ARGS EXTRA`` records in its capture's manifest
+    (``glossrig.twin.simulate.sample_options`` or, with ``--target checkerboard``,
+    ``checkerboard_options``), its command line read by the verb's own parser; a bad argument
+    is an InputError."""
     import argparse
 
     from glossrig.cli.verbs.simulate import add_arguments, parse_rotations, spp_of
     from glossrig.core.rig import load_rig
-    from glossrig.twin.simulate import sample_options, twin_effects
+    from glossrig.twin.simulate import checkerboard_options, sample_options, twin_effects
 
     class Parser(argparse.ArgumentParser):
         def error(self, message):
@@ -200,8 +266,8 @@ def simulate_options(*args, rig: Path = RIG, extra=()) -> dict:
     p = Parser(prog="glossrig simulate")
     add_arguments(p)
     a = p.parse_args(argv)
-    if a.target != "sample":
-        raise InputError(f"glossrig simulate {' '.join(argv)}: not a sample capture")
+    if a.target == "checkerboard":
+        return checkerboard_options(load_rig(a.rig), a.scale, a.seed, a.views, spp_of(a))
     return sample_options(load_rig(a.rig), a.material, a.leds, parse_rotations(a.rotations), a.repeats, a.scale, a.seed,
                           twin_effects(a.effects, a.ideal), spp_of(a))
 

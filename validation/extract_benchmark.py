@@ -622,4 +622,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from validation.common import run_main
+
+    raise SystemExit(run_main(main))

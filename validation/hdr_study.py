@@ -293,4 +293,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from validation.common import run_main
+
+    raise SystemExit(run_main(main))

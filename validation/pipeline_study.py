@@ -169,4 +169,6 @@ def markdown(r: dict, argv) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    from validation.common import run_main
+
+    raise SystemExit(run_main(main))

@@ -280,5 +280,7 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
+    from validation.common import run_main
+
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
-    main()
+    raise SystemExit(run_main(main))

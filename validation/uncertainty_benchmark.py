@@ -183,4 +183,6 @@ _PARAMS = None
 
 
 if __name__ == "__main__":
-    main()
+    from validation.common import run_main
+
+    raise SystemExit(run_main(main))

@@ -203,4 +203,6 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    from validation.common import run_main
+
+    raise SystemExit(run_main(main))

@@ -10,7 +10,8 @@ rerun the same command with --resume to finish it: recorded images are checked
 against their sha256, missing or damaged ones are re-made, and the capture ends
 byte-identical to one made without interruption (every image has its own random
 stream and its own time on the capture's schedule). A resume with other options
-is refused.
+is refused - the material's file counts by its content (its sha256 is recorded),
+so an edited .bsdf or .xml at the same path is another material.
 
 MATERIAL is one of
   ward:rho_d=..,rho_s=..,alpha_x=..,alpha_y=..,lobe_rotation=..   (extended Ward, thesis eq. 4.79;

@@ -156,6 +156,30 @@ def mitsuba_xml(path: str | Path, label: str | None = None) -> Material:
     return Material("mitsuba", label or p.stem, path=str(p.resolve()), xml=text)
 
 
+def material_sha256(spec: str) -> str | None:
+    """The sha256 of the files a material spec is read from, or None where the spec's text is
+    the whole material (``ward:``, ``lambert:``): a packaged name's TOML file (and the
+    ``.bsdf`` file a ``type = "measured"`` one names), a ``measured:`` file, a ``mitsuba:``
+    XML file. A capture records it (:func:`glossrig.twin.simulate.sample_options`), so a
+    capture is resumed or reused only with the material it was made of - an edited file at
+    the same path is another material. One file: its own sha256 (as ``sha256sum`` prints
+    it); several: the sha256 of their sha256s, one per line, in the order above. A Mitsuba
+    XML that names further files (a texture, a spectrum) has only the XML itself hashed."""
+    from glossrig.core.capture import sha256_file
+
+    spec = spec.strip()
+    files: list[Path] = []
+    if not spec.startswith(("ward:", "lambert:", "measured:", "mitsuba:")):
+        files.append(MATERIALS_DIR / f"{spec}.toml")
+    m = parse_material(spec)
+    if m.path is not None:
+        files.append(Path(m.path))
+    if not files:
+        return None
+    sums = [sha256_file(f) for f in files]
+    return sums[0] if len(sums) == 1 else hashlib.sha256("\n".join(sums).encode()).hexdigest()
+
+
 def parse_material(spec: str) -> Material:
     """Parse a material spec (see module docstring); errors name the spec."""
     spec = spec.strip()

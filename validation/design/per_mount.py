@@ -82,4 +82,6 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    from validation.common import run_main
+
+    raise SystemExit(run_main(main, sys.argv[1:]))

@@ -556,4 +556,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    from validation.common import run_main
+
+    raise SystemExit(run_main(main))

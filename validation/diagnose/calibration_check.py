@@ -155,4 +155,6 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from validation.common import run_main
+
+    raise SystemExit(run_main(main))

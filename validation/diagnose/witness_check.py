@@ -91,4 +91,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from validation.common import run_main
+
+    raise SystemExit(run_main(main))

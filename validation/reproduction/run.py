@@ -396,4 +396,6 @@ def ai_scale(r: dict):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from validation.common import run_main
+
+    raise SystemExit(run_main(main))
