@@ -272,6 +272,20 @@ def simulate_options(*args, rig: Path = RIG, extra=()) -> dict:
                           twin_effects(a.effects, a.ideal), spp_of(a))
 
 
+def capture_argv(material: str, scale: float, seed: int, rotations: str = "0", repeats: int = 1,
+                 leds: str = "middle") -> tuple:
+    """The ``glossrig simulate`` arguments of :func:`capture` (but ``--rig``, ``--out`` and EXTRA)."""
+    return ("--material", material, "--leds", leds, f"--rotations={rotations}", "--repeats", repeats,
+            "--scale", scale, "--seed", seed)
+
+
+def check_capture(out: Path, material: str, scale: float, seed: int, rotations: str = "0", repeats: int = 1, *,
+                  leds: str = "middle", extra=(), rig: Path = RIG) -> None:
+    """:func:`check_reuse` of the complete capture in OUT for the one :func:`capture` makes with
+    these arguments (a study that reuses a capture it kept itself, outside :func:`capture`)."""
+    check_reuse(out, *capture_argv(material, scale, seed, rotations, repeats, leds), rig=rig, extra=extra)
+
+
 def capture(out: Path, material: str, scale: float, seed: int, rotations: str = "0", repeats: int = 1, *,
             leds: str = "middle", extra=(), rig: Path = RIG, mode: str = "reuse", **run) -> Path:
     """A capture of MATERIAL: :func:`simulate` with ``--material --leds --rotations
@@ -279,8 +293,7 @@ def capture(out: Path, material: str, scale: float, seed: int, rotations: str = 
     in OUT of the first of LEDS (all other options equal: checked, with the LEDs, before
     anything is changed) is extended to LEDS (:func:`extend_leds`) and completed;
     otherwise as ``resume``."""
-    args = ("--material", material, "--leds", leds, f"--rotations={rotations}", "--repeats", repeats,
-            "--scale", scale, "--seed", seed)
+    args = capture_argv(material, scale, seed, rotations, repeats, leds)
     if mode == "extend":
         options = simulate_options(*args, rig=rig, extra=extra)
         extend_leds(Path(out), options["leds"], options=options)

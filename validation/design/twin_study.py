@@ -37,6 +37,7 @@ Re-running resumes: finished captures, extractions and fits are reused.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 from pathlib import Path
@@ -44,7 +45,8 @@ from pathlib import Path
 import numpy as np
 
 from glossrig.core.atomic import atomic_write_text
-from glossrig.core.capture import load_manifest, read_truth
+from glossrig.core.capture import capture_complete, load_manifest, read_truth
+from glossrig.core.errors import InputError
 from glossrig.core.fitting.export import read_fit_json
 from glossrig.core.fitting.fit import parameter_errors
 from validation.common import GlossrigFailed, capture, extract, fit, glossrig, needs_capture, truth_camera, truth_lamps
@@ -62,6 +64,14 @@ def planned_capture(out: Path, rig: Path, material: str, leds: str, rotations: s
                     seed: int) -> tuple[Path, dict]:
     """`glossrig design exposures` for the material, then that plan on the twin backends."""
     plan, report = out.with_suffix(".plan.toml"), out.with_suffix(".plan.json")
+    if report.exists():
+        check_plan(plan, rig, material, leds, rotations, scale, seed)
+    if report.exists() and capture_complete(out):
+        made_with = (load_manifest(out).meta.get("plan") or {}).get("sha256")
+        if made_with != hashlib.sha256(plan.read_bytes()).hexdigest():
+            raise InputError(f"the complete capture here was not made with the plan {plan} (its manifest records "
+                             f"plan sha256 {made_with!r}); remove it or choose another --work (nothing was changed)",
+                             path=out / "capture.json")
     if not report.exists():
         glossrig("design", "exposures", "--rig", rig, "--material", material, "--leds", leds,
                  f"--rotations={rotations}", "--capture-scale", scale, "--seed", seed, "--out", plan,
@@ -70,6 +80,27 @@ def planned_capture(out: Path, rig: Path, material: str, leds: str, rotations: s
         # the plan's own [twin] table (material, --capture-scale, --seed) drives the twin
         glossrig("capture", "--plan", plan, "--lights", "twin", "--camera", "twin", "--out", out, "--no-progress")
     return out, json.loads(report.read_text())
+
+
+def check_plan(plan: Path, rig: Path, material: str, leds: str, rotations: str, scale: float, seed: int) -> None:
+    """A plan kept in WORK is reused only for the capture it was made for: its rig, LEDs,
+    rotations and [twin] material, scale and seed must be the ones asked for now (a study run
+    again into WORK with another ``--scale``, say), else an InputError names the plan file and
+    every difference."""
+    from glossrig.core.rig import load_rig
+    from glossrig.hardware.plan import load_plan
+
+    p = load_plan(plan)
+    want = {"rig": str(Path(load_rig(rig).path).resolve()), "leds": list(load_rig(rig).select_leds(leds)),
+            "rotations": [float(r) for r in rotations.split(",")], "material": material, "scale": float(scale),
+            "seed": int(seed)}
+    have = {"rig": str(Path(p.rig_path).resolve()), "leds": list(p.leds), "rotations": list(p.rotations),
+            "material": p.twin.get("material"), "scale": float(p.twin.get("scale", float("nan"))),
+            "seed": p.twin.get("seed")}
+    diff = [f"{k}: plan {have[k]!r}, now {want[k]!r}" for k in want if have[k] != want[k]]
+    if diff:
+        raise InputError(f"the plan kept here was made for another capture ({'; '.join(diff)}); remove it (and its "
+                         ".plan.json and capture) or choose another --work (nothing was changed)", path=plan)
 
 
 def truth_calibration(capture: Path, work: Path) -> tuple[Path, Path]:

@@ -44,7 +44,10 @@ With ``--keep-raws`` the trials' raw files stay (about 110 MB a trial); ``--redi
 diagnoses every finished trial and null again whose diagnosis ran with other code than this
 checkout's - on the kept raws, else on the capture made again from the same seed (the twin is
 deterministic, so it is the same capture) - so a change to diagnose is measured on the same
-trials.
+trials. A kept capture is diagnosed again only as what it was made as: a trial's record must
+hide what this checkout's plan draws (:func:`check_kept_trial`), a null capture must be the
+one its simulate command makes (:func:`validation.common.check_capture`); else the run stops
+with a message naming the folder (exit status 2).
 
 What counts (issue 14): top-1 on single effects (the verdict is the hidden cause, or
 "unexplained" for axis_step); two-effect trials: both hidden causes among the first two of
@@ -65,7 +68,8 @@ from pathlib import Path
 import numpy as np
 
 from glossrig.core.capture import load_manifest, read_truth
-from validation.common import calibrate, capture
+from glossrig.core.errors import InputError
+from validation.common import calibrate, capture, check_capture
 from validation.paths import rgl_dir
 from validation.provenance import code_version
 
@@ -132,10 +136,31 @@ def plan(k: int) -> tuple[str, tuple[str, ...]]:
     return MATERIALS[k % len(MATERIALS)], SLOTS[(k // len(MATERIALS)) % len(SLOTS)]
 
 
+def simulate_args(material: str, seed: int, effects: str | None = None) -> tuple[tuple, dict]:
+    """The arguments of :func:`validation.common.capture` for a study capture of MATERIAL."""
+    return ((material_spec(material), 0.25, seed, "0", 1),
+            {"leds": ",".join(map(str, LEDS)), "extra": ("--ideal", *(["--effects", effects] if effects else []))})
+
+
 def simulate(out: Path, material: str, seed: int, effects: str | None = None):
     """A fresh capture of MATERIAL (LEDS, rotation 0, scale 0.25, --ideal), output captured."""
-    capture(out, material_spec(material), 0.25, seed, "0", 1, leds=",".join(map(str, LEDS)),
-            extra=("--ideal", *(["--effects", effects] if effects else [])), mode="fresh", stdout=False, stderr=False)
+    args, kw = simulate_args(material, seed, effects)
+    capture(out, *args, **kw, mode="fresh", stdout=False, stderr=False)
+
+
+def check_kept_trial(cap: Path, prev: dict | None, material: str, hidden: dict, absent: dict) -> None:
+    """A trial's kept capture is diagnosed again (``--rediagnose``) only as what it was made as: its
+    earlier record's material and hidden (and drawn but not hidden) causes must be what this
+    checkout's plan draws for the trial (:func:`draw`), else an InputError names the folder and
+    the difference - a changed plan would otherwise score an old capture against new truth."""
+    now = json.loads(json.dumps({"material": material, "hidden": hidden, "not_hidden": absent}))
+    if prev is None:
+        raise InputError("a kept trial capture without its record in trials.json: what it hides is not known; "
+                         "remove the folder to make it again", path=cap)
+    diff = [f"{k}: capture {prev.get(k)!r}, plan now {v!r}" for k, v in now.items() if prev.get(k, {}) != v]
+    if diff:
+        raise InputError(f"the kept capture was made for another trial plan ({'; '.join(diff)}); remove it to "
+                         "make it again, or use another --work (nothing was changed)", path=cap)
 
 
 def calibration(work: Path, a) -> tuple[str, str, str]:
@@ -288,7 +313,9 @@ def trial(k: int, work: Path, a, bases: dict, ref, reuse: bool = False, prev: di
     cap = work / f"t{k:03d}"
     t0 = time.time()
     code = record_code(a, reuse, prev)
-    if not reuse:
+    if reuse:
+        check_kept_trial(cap, prev, material, hidden, absent)
+    else:
         hide(cap, material, 1000 + k, hidden, null, fresh=any(CAUSES[c][2] == "twin" for c in absent))
     if getattr(a, "no_diagnose", False):        # the capture alone; --rediagnose diagnoses it later
         return {"trial": k, "material": material, "hidden": hidden, "not_hidden": absent, "verdict": None, "ranking": [],
@@ -334,7 +361,10 @@ def null_capture(j: int, work: Path, a, bases: dict, ref, prev: dict | None = No
     t0 = time.time()
     reuse = has_raws(cap)
     code = record_code(a, reuse, prev)
-    if not reuse:
+    if reuse:       # made by the same simulate command (material, seed, LEDs, ...), or stop
+        args, kw = simulate_args(material, NULL_SEED + j)
+        check_capture(cap, *args, **kw)
+    else:
         simulate(cap, material, NULL_SEED + j)
     if getattr(a, "no_diagnose", False):
         return {"null": j, "material": material, "seed": NULL_SEED + j, "verdict": None, "capture_reused": reuse,
