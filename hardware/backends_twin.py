@@ -69,6 +69,26 @@ class TwinCamera:
     def configure(self, *, exposure_s: float, iso: int, aperture: float) -> None:
         self._settings = dict(exposure_s=float(exposure_s), iso=int(iso), aperture=float(aperture))
 
+    def provenance(self) -> dict:
+        """What makes this camera's images besides the plan: Mitsuba's variant and version, Dr.Jit's
+        version and the sensor model's path. Recorded in the manifest (``camera_provenance``): the
+        same seed makes the same bytes only with the same renderer and sensor path - the CPU and GPU
+        variants' renders differ in the last bits, and the NumPy reference sensor's sequential
+        Poisson stream turns that into other noise (validation/twin/variants.md)."""
+        from importlib.metadata import PackageNotFoundError, version
+
+        from glossrig.twin import sensor_drjit
+        from glossrig.twin.mitsuba_env import mitsuba
+
+        def ver(name: str) -> str | None:
+            try:
+                return version(name)
+            except PackageNotFoundError:
+                return None
+
+        return {"mitsuba_variant": mitsuba().variant(), "mitsuba": ver("mitsuba"), "drjit": ver("drjit"),
+                "sensor_model": "drjit-llvm" if sensor_drjit.available() else "numpy-reference"}
+
     def next_shot(self, shot, at_s: float) -> None:
         """The orchestrator names the planned shot the next :meth:`capture` takes and its
         time on the plan's schedule: the image then gets its own random stream and time

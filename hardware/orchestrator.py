@@ -134,6 +134,12 @@ class CaptureRun:
             print(msg, file=self._log_stream, flush=True)
 
     # ------------------------------------------------------------ folder
+    def _camera_provenance(self) -> dict | None:
+        """The camera backend's own record of what makes its images (``provenance()``, where it has one:
+        the twin's renderer and sensor path), or None."""
+        f = getattr(self.camera, "provenance", None)
+        return dict(f()) if callable(f) else None
+
     def _rig_bytes(self) -> bytes:
         try:
             return self.plan.rig_path.read_bytes()
@@ -164,6 +170,9 @@ class CaptureRun:
                 "plan": self.plan.meta(), "backends": self.backends, "software": _software(), "started": now_iso()}
         if self.plan.twin and self.backends.get("camera") == "twin":
             meta["twin"] = dict(self.plan.twin)
+        prov = self._camera_provenance()
+        if prov is not None:
+            meta["camera_provenance"] = prov
         meta.update(self.extra_meta)
         self.manifest = Manifest(folder=self.out, rig=RIG_COPY, material=self.plan.sample, images=[],
                                  complete=False, meta=meta)
@@ -229,6 +238,14 @@ class CaptureRun:
                 self.log(f"resume: {name} was written but never recorded (crash between the two); moved to "
                          f"{dest}, it will be retaken")
         self.report.kept = sum(1 for im in good if im.key() in planned)
+        prov = self._camera_provenance()
+        if prov is not None and m.meta.get("camera_provenance") not in (None, prov):
+            # allowed (the same physics and statistics), but said and recorded: the finished capture is not
+            # the bytes an uninterrupted run of either camera would have written
+            self.log(f"resume: warning: the capture was started by a camera made otherwise "
+                     f"({m.meta['camera_provenance']}); the remaining images are made by {prov}: the same "
+                     "statistics, but not the bytes an uninterrupted run would have written")
+            m.meta.setdefault("resumed_camera_provenance", []).append(prov)
         m.images = good
         m.complete = False
         m.meta.setdefault("resumed", []).append(now_iso())

@@ -86,6 +86,43 @@ def test_resumed_simulation_is_byte_identical(tmp_path, monkeypatch):
 
 
 @pytest.mark.mitsuba
+def test_a_capture_records_its_renderer_and_a_resume_by_another_says_so(tmp_path, monkeypatch, capsys):
+    """The manifest records what made the images besides the plan (Mitsuba's variant and version,
+    Dr.Jit's, the sensor model's path): the same seed is the same bytes only with those. A resume
+    by a camera made otherwise (here: the record says another variant) goes on - same statistics -
+    but warns, and the manifest keeps both records."""
+    from glossrig.hardware import backends_twin
+    from glossrig.twin import sensor_drjit
+    from glossrig.twin.mitsuba_env import mitsuba
+
+    out = tmp_path / "cap"
+    real = backends_twin.TwinCamera.capture
+    calls = {"n": 0}
+
+    def interrupted(self, path):
+        if calls["n"] == 5:
+            raise KeyboardInterrupt
+        calls["n"] += 1
+        return real(self, path)
+
+    monkeypatch.setattr(backends_twin.TwinCamera, "capture", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _simulate(out, rotations=[0.0])
+    monkeypatch.setattr(backends_twin.TwinCamera, "capture", real)
+    d = json.loads((out / MANIFEST).read_text())
+    prov = d["camera_provenance"]
+    assert prov["mitsuba_variant"] == mitsuba().variant() and prov["mitsuba"] and prov["drjit"]
+    assert prov["sensor_model"] == ("drjit-llvm" if sensor_drjit.available() else "numpy-reference")
+    d["camera_provenance"] = {**prov, "mitsuba_variant": "cuda_ad_rgb"}
+    (out / MANIFEST).write_text(json.dumps(d))
+    _simulate(out, rotations=[0.0], resume=True)
+    assert "the capture was started by a camera made otherwise" in capsys.readouterr().err
+    m = load_manifest(out)
+    assert m.complete and m.meta["camera_provenance"]["mitsuba_variant"] == "cuda_ad_rgb"
+    assert m.meta["resumed_camera_provenance"] == [prov]
+
+
+@pytest.mark.mitsuba
 def test_simulate_and_twin_capture_write_the_same_folder(tmp_path):
     """The same capture through ``glossrig simulate`` and ``glossrig capture --lights twin
     --camera twin``: the same files (rig.toml and truth.json included), the same names."""
