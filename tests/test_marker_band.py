@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from glossrig.core.diagnose.marker_band import (BAND_FLOOR_MM, BAND_Z3, apply_band_evidence, band_evidence,
-                                                band_points)
+from glossrig.core.diagnose.marker_band import (BAND_FLOOR_MM, BAND_Z3, apply_band_evidence, band_bound, band_evidence,
+                                                band_moved, band_points)
 
 from conftest import RIG, glossrig_cli, run_shared_folder
 from test_silhouette import thesis_geometry
@@ -72,6 +72,32 @@ def test_leds_where_they_were_are_no_signature():
         ev = band_evidence(band_units(rig, geom, cam, size, {}, seed), lamps(rig))
         assert not ev["significant"], ev
         assert max(p["z"] for p in ev["per_led"].values()) < BAND_Z3
+        assert not band_moved(ev["per_led"])[0]
+
+
+def test_leds_moved_a_little_each_are_seen_together():
+    """The two tests of no move at the 4-sigma tail (module docstring, "Test"): one LED far out, or
+    every LED a little out together - each LED under its own bound but the sum of chi^2 over all of
+    them beyond chi^2's bound with 3 x LEDs degrees of freedom; neither where the offsets are what
+    no move gives."""
+    from scipy.stats import chi2, norm
+
+    def leds(*z):
+        return {str(k): {"z": v} for k, v in enumerate(z)}
+
+    assert band_bound(8) == pytest.approx(chi2.isf(2 * norm.sf(4.0), 24)) and 59 < band_bound(8) < 61
+    assert band_moved(leds(5.0, 0.1))[0]                                   # one LED out
+    spread = [2.85] * 8                                                    # each under 4.70, sum 65 > 60
+    assert max(spread) < BAND_Z3 and band_moved(leds(*spread))[0]
+    assert "together" in band_moved(leds(*spread))[1]
+    assert not band_moved(leds(*[2.2] * 8))[0]                             # sum 38.7: no move
+    assert not band_moved(leds(3.5, 3.5))[0]                               # two LEDs: sum 24.5 < 28.9
+    rng = np.random.default_rng(1)
+    # offsets that are noise alone (chi with 3 dof per LED): the eight LEDs' own tests and the sum's at
+    # the 4-sigma tail (6.3e-5) give at most 9 x 6.3e-5 false alarms a capture, 11.4 expected in 20000;
+    # more than 25 has a Poisson(11.4) chance of 2e-4
+    alarms = sum(band_moved(leds(*np.sqrt(rng.chisquare(3, 8))))[0] for _ in range(20000))
+    assert alarms <= 25
 
 
 def test_a_bent_band_is_not_read():

@@ -45,8 +45,21 @@ def records(work: Path) -> list[dict]:
     return out
 
 
+def title(work: Path) -> str:
+    """The study's LEDs (WORK/leds.json; a study made before it: LEDs 6 and 9) and the code its
+    diagnoses ran with (the commits the trials' and nulls' records name)."""
+    leds = json.loads((work / "leds.json").read_text()) if (work / "leds.json").exists() else [6, 9]
+    recs = json.loads((work / "trials.json").read_text())
+    if (work / "nulls.json").exists():
+        recs += json.loads((work / "nulls.json").read_text())
+    ran = sorted({(c or {}).get("commit", "?") + ("+dirty" if (c or {}).get("dirty") else "")
+                  for c in (r.get("code", {}).get("diagnose") for r in recs)})
+    return (f"## The blind study of {len(leds)} LEDs ({', '.join(map(str, leds))}; WORK `{work.name}`, "
+            f"diagnoses at {', '.join(ran)})")
+
+
 def summary(work: Path, rows: list[dict]) -> str:
-    L = [f"## {work}", ""]
+    L = [title(work), ""]
     for w, (_, cause, _, unit) in WITNESSES.items():
         have = [r for r in rows if r[w] is not None]
         hid = [r for r in have if cause in r["hidden"]]
@@ -81,8 +94,11 @@ def main(argv=None) -> int:
     for w in a.work:
         if not (w / "trials.json").exists():
             ap.exit(2, f"{w}: no trials.json (not a blind study's work folder)\n")
-    text = "# diagnose's witnesses over the blind studies' captures\n\n" + "\n".join(
-        summary(w, records(w)) for w in a.work)
+    text = ("# diagnose's witnesses over the blind studies' captures\n\n"
+            "Regenerate: `python -m validation.diagnose.witness_check WORK [WORK ...] --out FILE --force` on the blind "
+            "studies' work folders after their runs (it reads each report.json; nothing is measured again).\n\n"
+            + "\n".join(
+        summary(w, records(w)) for w in a.work))
     if a.out:
         a.out.write_text(text)
     else:
