@@ -146,3 +146,24 @@ def test_a_twin_study_plan_or_capture_is_reused_only_for_what_it_was_made_for(tm
     with pytest.raises(InputError, match="capture.json: the complete capture here was not made with the plan"):
         twin_study.planned_capture(out, common.RIG, "sample_2_6", "6,10", "0", 0.1, 1)
     assert len(calls) == 1
+
+
+def test_a_work_folder_keeps_the_leds_of_its_study(tmp_path, monkeypatch):
+    """blind_study.use_leds: a new WORK records its LEDs; a later run with other LEDs stops with a
+    message naming the kept ones; a WORK made before leds.json is the two-LED study."""
+    monkeypatch.setattr(blind_study, "LEDS", blind_study.LEDS)
+    new = tmp_path / "new"
+    new.mkdir()
+    blind_study.use_leds(new, "middle")
+    assert blind_study.study_leds(new) == (5, 6, 7, 8, 9, 10, 11, 12) == blind_study.LEDS
+    with pytest.raises(SystemExit, match="holds a study of LEDs .5, 6, 7, 8, 9, 10, 11, 12., not .6, 9."):
+        blind_study.use_leds(new, "6,9")
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "trials.json").write_text("[]")
+    assert blind_study.study_leds(old) == (6, 9)
+    with pytest.raises(SystemExit, match="made before --leds"):
+        blind_study.use_leds(old, "middle")
+    blind_study.use_leds(old, "6,9")
+    assert json.loads((old / "leds.json").read_text()) == [6, 9]
+    assert blind_study.study_leds(tmp_path / "none") is None

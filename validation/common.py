@@ -121,26 +121,21 @@ def simulate(out: Path, *args, rig: Path = RIG, extra=(), mode: str = "reuse", *
     ``resume`` (kept; a partial one finished with ``--resume``) or ``fresh`` (always made
     anew). With ``echo`` a reused capture is said."""
     out = Path(out)
+    if mode not in ("reuse", "resume", "fresh"):
+        raise ValueError(f"mode {mode!r}: reuse, resume or fresh")
     resume = []
     if mode == "fresh":
         if out.exists():
             shutil.rmtree(out)
+    elif capture_complete(out):
+        check_reuse(out, *args, rig=rig, extra=extra)
+        if run.get("echo"):
+            print(f"reusing the complete capture {out}", flush=True)
+        return out
     elif mode == "resume":
-        if capture_complete(out):
-            check_reuse(out, *args, rig=rig, extra=extra)
-            if run.get("echo"):
-                print(f"reusing the complete capture {out}", flush=True)
-            return out
         resume = ["--resume"] if out.exists() and any(out.iterdir()) else []
-    elif mode == "reuse":
-        if capture_complete(out):
-            check_reuse(out, *args, rig=rig, extra=extra)
-        if not needs_capture(out):
-            if run.get("echo"):
-                print(f"reusing the complete capture {out}", flush=True)
-            return out
-    else:
-        raise ValueError(f"mode {mode!r}: reuse, resume or fresh")
+    elif out.exists():          # reuse: a partial capture is made again
+        shutil.rmtree(out)
     glossrig("simulate", "--rig", rig, *args, "--no-progress", "--out", out, *extra, *resume, **run)
     return out
 

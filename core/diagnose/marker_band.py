@@ -41,9 +41,9 @@ trial 48 (LED moves of 1.66 mm RMS per axis beside hot pixels) no LED's offset p
 their sum of chi^2 was 65.1, where the 26 captures of that study read without a moved LED summed to
 at most 4.1 (the floor below makes the null sums small). Each test at the 4-sigma tail (6.3e-5):
 on offsets that are noise alone the sum adds at most that to the LEDs' own tests, (LEDs + 1) x 6.3e-5
-in all (5.7e-4 on eight LEDs; tests/test_marker_band.py draws it). Each component's standard error (the
-fit's, scaled by its residual) is combined with BAND_FLOOR_MM, the band's model error: the paper taken as Lambertian and uniform, at the rig file's
-radius and seen through poses good to a fraction of a pixel (on 19 of the blind study's captures
+in all (5.7e-4 on eight LEDs; tests/test_marker_band.py draws it). Each component's standard error
+(the fit's, scaled by its residual) is combined with BAND_FLOOR_MM, the band's model error: the paper
+taken as Lambertian and uniform, at the rig file's radius and seen through poses good to a fraction of a pixel (on 19 of the blind study's captures
 without a moved LED or an effect that bends the band, LED 6's components read up to 0.77 mm, LED 9's up to
 0.45; a sample radius 0.5 mm off gave 0.66) - the pooled held-out gain exceeds GAIN_THRESHOLD and
 the folds agree. Premise, stated: the reference capture was lit by the LEDs where the lamp calibration puts
@@ -71,6 +71,11 @@ BAND_Z = 4.0          # an LED's offset must lie as far from 0 as BAND_Z standar
 #: sqrt of chi^2 (3 components) at the two-sided BAND_Z-sigma tail
 BAND_Z3 = math.sqrt(float(chi2.isf(2 * norm.sf(BAND_Z), 3)))
 FIT_CHI2 = 2.0        # the fit's robust normalised residual must stay below this (a moved LED's pattern)
+MIN_COS = 0.15        # band pixels lit at least this steeply (cos theta_in) under the LED
+ALBEDO_CUT = 0.5      # pixels below this fraction of the band's median albedo: a printed marker
+EDGE_MM = 1.0         # band pixels this close to the band's upper or lower edge are left out
+#: frame- and pixel-space causes that bend the band's shading between the captures (module docstring)
+BENDING_SENSOR = ("black_level_offset", "sensor_nonlinearity", "shutter_error", "channel_response")
 
 
 def band_bound(n_leds: int) -> float:
@@ -92,11 +97,6 @@ def band_moved(per_led: dict) -> tuple[bool, str]:
     return False, (f"every LED's offset within the {BAND_Z:g}-sigma bound of no move (sqrt chi^2, 3 components, "
                    f"{BAND_Z3:.2f}), and all together (sum of chi^2 {total:.1f} <= {bound:.1f}, {3 * len(z)} "
                    "components)")
-MIN_COS = 0.15        # band pixels lit at least this steeply (cos theta_in) under the LED
-ALBEDO_CUT = 0.5      # pixels below this fraction of the band's median albedo: a printed marker
-EDGE_MM = 1.0         # band pixels this close to the band's upper or lower edge are left out
-#: frame- and pixel-space causes that bend the band's shading between the captures (module docstring)
-BENDING_SENSOR = ("black_level_offset", "sensor_nonlinearity", "shutter_error", "channel_response")
 
 
 def _irradiance(P, X, N):
@@ -266,13 +266,15 @@ def band_evidence(units: list[dict], lamps: dict, bent_by: list[str] | None = No
     if worst_scale > FIT_CHI2:
         ev["why_not"] = (f"the ratio is no moved LED's pattern: its residual is {worst_scale:.1f} times the noise "
                          "(another change of the light between the captures)")
-    elif not band_moved(ev["per_led"])[0]:
-        ev["why_not"] = band_moved(ev["per_led"])[1]
+        return ev
+    moved, found = band_moved(ev["per_led"])
+    if not moved:
+        ev["why_not"] = found
     elif not (gain > GAIN_THRESHOLD and consistent_folds(fold_gains)):
         ev["why_not"] = "held-out gain not above the threshold in the folds"
     else:
         ev["significant"] = True
-        ev["moved"] = band_moved(ev["per_led"])[1]
+        ev["moved"] = found
     return ev
 
 

@@ -37,7 +37,6 @@ Re-running resumes: finished captures, extractions and fits are reused.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import math
 from pathlib import Path
@@ -65,10 +64,9 @@ def planned_capture(out: Path, rig: Path, material: str, leds: str, rotations: s
     """`glossrig design exposures` for the material, then that plan on the twin backends."""
     plan, report = out.with_suffix(".plan.toml"), out.with_suffix(".plan.json")
     if report.exists():
-        check_plan(plan, rig, material, leds, rotations, scale, seed)
-    if report.exists() and capture_complete(out):
-        made_with = (load_manifest(out).meta.get("plan") or {}).get("sha256")
-        if made_with != hashlib.sha256(plan.read_bytes()).hexdigest():
+        kept = check_plan(plan, rig, material, leds, rotations, scale, seed)
+        made_with = (load_manifest(out).meta.get("plan") or {}).get("sha256") if capture_complete(out) else None
+        if made_with is not None and made_with != kept.text_sha256:
             raise InputError(f"the complete capture here was not made with the plan {plan} (its manifest records "
                              f"plan sha256 {made_with!r}); remove it or choose another --work (nothing was changed)",
                              path=out / "capture.json")
@@ -82,16 +80,16 @@ def planned_capture(out: Path, rig: Path, material: str, leds: str, rotations: s
     return out, json.loads(report.read_text())
 
 
-def check_plan(plan: Path, rig: Path, material: str, leds: str, rotations: str, scale: float, seed: int) -> None:
-    """A plan kept in WORK is reused only for the capture it was made for: its rig, LEDs,
-    rotations and [twin] material, scale and seed must be the ones asked for now (a study run
-    again into WORK with another ``--scale``, say), else an InputError names the plan file and
-    every difference."""
+def check_plan(plan: Path, rig: Path, material: str, leds: str, rotations: str, scale: float, seed: int):
+    """The plan kept in WORK (a :class:`~glossrig.hardware.plan.CapturePlan`), reused only for the
+    capture it was made for: its rig, LEDs, rotations and [twin] material, scale and seed must be
+    the ones asked for now (a study run again into WORK with another ``--scale``, say), else an
+    InputError names the plan file and every difference."""
     from glossrig.core.rig import load_rig
     from glossrig.hardware.plan import load_plan
 
-    p = load_plan(plan)
-    want = {"rig": str(Path(load_rig(rig).path).resolve()), "leds": list(load_rig(rig).select_leds(leds)),
+    p, r = load_plan(plan), load_rig(rig)
+    want = {"rig": str(Path(r.path).resolve()), "leds": list(r.select_leds(leds)),
             "rotations": [float(r) for r in rotations.split(",")], "material": material, "scale": float(scale),
             "seed": int(seed)}
     have = {"rig": str(Path(p.rig_path).resolve()), "leds": list(p.leds), "rotations": list(p.rotations),
@@ -101,6 +99,7 @@ def check_plan(plan: Path, rig: Path, material: str, leds: str, rotations: str, 
     if diff:
         raise InputError(f"the plan kept here was made for another capture ({'; '.join(diff)}); remove it (and its "
                          ".plan.json and capture) or choose another --work (nothing was changed)", path=plan)
+    return p
 
 
 def truth_calibration(capture: Path, work: Path) -> tuple[Path, Path]:

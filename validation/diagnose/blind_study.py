@@ -113,17 +113,23 @@ def use_leds(work: Path, spec: str) -> None:
     from validation.common import RIG
 
     leds = tuple(load_rig(RIG).select_leds(spec))
-    f = work / "leds.json"
-    if f.exists():
-        kept = tuple(json.loads(f.read_text()))
-        if kept != leds:
-            raise SystemExit(f"{work} holds a study of LEDs {kept}, not {leds}: give --leds {','.join(map(str, kept))} "
-                             f"or another --work")
-    elif (work / "trials.json").exists() and leds != (6, 9):
-        raise SystemExit(f"{work} holds a study made before --leds (LEDs 6, 9): give --leds 6,9 or another --work")
-    else:
+    kept, f = study_leds(work), work / "leds.json"
+    if kept is not None and kept != leds:
+        raise SystemExit(f"{work} holds a study of LEDs {kept}, not {leds}: give --leds {','.join(map(str, kept))} "
+                         f"or another --work" if f.exists() else
+                         f"{work} holds a study made before --leds (LEDs 6, 9): give --leds 6,9 or another --work")
+    if not f.exists():
         f.write_text(json.dumps(list(leds)))
     LEDS = leds
+
+
+def study_leds(work: Path) -> tuple[int, ...] | None:
+    """The LEDs of the study in WORK: WORK/leds.json, or (6, 9) for a study made before it was kept
+    (trials.json without it); None for a new work folder."""
+    f = work / "leds.json"
+    if f.exists():
+        return tuple(json.loads(f.read_text()))
+    return (6, 9) if (work / "trials.json").exists() else None
 
 
 def material_spec(m: str) -> str:

@@ -35,6 +35,7 @@ def records(work: Path) -> list[dict]:
             continue
         r = json.loads(rep.read_text())
         row = {"capture": name, "material": rec["material"], "hidden": rec.get("hidden", {}),
+               "code": rec.get("code", {}).get("diagnose"),
                "true": rec.get("true_magnitude", {}), "verdict": r["verdict"], "ranking": r.get("ranking", [])}
         for w, (key, cause, est, _) in WITNESSES.items():
             ev = r.get("meta", {}).get(key)
@@ -45,21 +46,20 @@ def records(work: Path) -> list[dict]:
     return out
 
 
-def title(work: Path) -> str:
-    """The study's LEDs (WORK/leds.json; a study made before it: LEDs 6 and 9) and the code its
-    diagnoses ran with (the commits the trials' and nulls' records name)."""
-    leds = json.loads((work / "leds.json").read_text()) if (work / "leds.json").exists() else [6, 9]
-    recs = json.loads((work / "trials.json").read_text())
-    if (work / "nulls.json").exists():
-        recs += json.loads((work / "nulls.json").read_text())
+def title(work: Path, rows: list[dict]) -> str:
+    """The study's LEDs (:func:`validation.diagnose.blind_study.study_leds`) and the code its
+    diagnoses ran with (the commits the diagnosed captures' records name)."""
+    from validation.diagnose.blind_study import study_leds
+
+    leds = study_leds(work) or ()
     ran = sorted({(c or {}).get("commit", "?") + ("+dirty" if (c or {}).get("dirty") else "")
-                  for c in (r.get("code", {}).get("diagnose") for r in recs)})
+                  for c in (r["code"] for r in rows)})
     return (f"## The blind study of {len(leds)} LEDs ({', '.join(map(str, leds))}; WORK `{work.name}`, "
             f"diagnoses at {', '.join(ran)})")
 
 
 def summary(work: Path, rows: list[dict]) -> str:
-    L = [title(work), ""]
+    L = [title(work, rows), ""]
     for w, (_, cause, _, unit) in WITNESSES.items():
         have = [r for r in rows if r[w] is not None]
         hid = [r for r in have if cause in r["hidden"]]
@@ -97,8 +97,7 @@ def main(argv=None) -> int:
     text = ("# diagnose's witnesses over the blind studies' captures\n\n"
             "Regenerate: `python -m validation.diagnose.witness_check WORK [WORK ...] --out FILE --force` on the blind "
             "studies' work folders after their runs (it reads each report.json; nothing is measured again).\n\n"
-            + "\n".join(
-        summary(w, records(w)) for w in a.work))
+            + "\n".join(summary(w, records(w)) for w in a.work))
     if a.out:
         a.out.write_text(text)
     else:

@@ -151,20 +151,38 @@ def compare_captures(a: dict, b: dict, fa: Path, fb: Path) -> dict:
             "share_of_values_differing": max(frac) if frac else 0.0, "largest_dn_difference": most}
 
 
+def whole_captures(variants: list[str], scale: float) -> dict:
+    """``--capture``: a whole capture per variant (:func:`capture`), the first two compared, and the
+    first variant's made again (is a capture the same bytes within one variant?)."""
+    import tempfile
+
+    out: dict = {"scale": scale, "captures": [], "comparison": None, "repeat": None}
+    with tempfile.TemporaryDirectory(prefix="glossrig-variants-") as d:
+        for v in variants:
+            print(f"{v}: whole capture ...", flush=True)
+            out["captures"].append(capture(v, Path(d) / v, scale))
+        done = [c for c in out["captures"] if "error" not in c]
+        if len(done) >= 2:
+            out["comparison"] = compare_captures(done[0], done[1], Path(d) / done[0]["variant"],
+                                                 Path(d) / done[1]["variant"])
+        if done:
+            v = done[0]["variant"]
+            again = capture(v, Path(d) / f"{v}.again", scale)
+            if "error" not in again:
+                out["repeat"] = {"variant": v, **compare_captures(done[0], again, Path(d) / v, Path(d) / f"{v}.again")}
+    return out
+
+
 def machine() -> str:
+    import shutil
+
     gpu = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version", "--format=csv,noheader"],
-                         capture_output=True, text=True) if _which("nvidia-smi") else None
+                         capture_output=True, text=True) if shutil.which("nvidia-smi") else None
     name = gpu.stdout.strip() if gpu is not None and gpu.returncode == 0 else "no GPU"
     return f"{os.cpu_count()} CPU cores, {name}; load average {os.getloadavg()[0]:.2f}"
 
 
-def _which(cmd: str) -> bool:
-    import shutil
-
-    return shutil.which(cmd) is not None
-
-
-def report(results: list[dict], comparisons: dict, args, where: str) -> str:
+def report(results: list[dict], comparisons: dict, args, where: str, caps: dict | None = None) -> str:
     lines = [MEASURED, "",
              f"Command: `python -m validation.twin.variant_benchmark --variants {args.variants} --scales {args.scales} "
              f"--repeats {args.repeats}{' --capture' if args.capture else ''}`; machine: {where}; the twin's sensor "
@@ -201,19 +219,18 @@ def report(results: list[dict], comparisons: dict, args, where: str) -> str:
                 x = c[key]
                 lines.append(f"| {label} | {x['pixels']} | {x['total_ratio'] - 1:+.1e} | {x['median_rel_diff']:.1e} | "
                              f"{x['p99_rel_diff']:.1e} |")
-    caps = getattr(args, "capture_results", None)
     if caps:
-        lines += ["", f"Whole captures (`glossrig simulate --leds middle --scale {min(args.scale_list)} --seed 1 "
+        lines += ["", f"Whole captures (`glossrig simulate --leds middle --scale {caps['scale']} --seed 1 "
                   f"--ideal`, {MATERIAL}: 8 LEDs, the calibration image and 8 x 18 exposures, DNGs written; the "
                   "sensor model runs on the CPU in every variant), wall-clock seconds of the command:", ""]
-        for c in caps:
+        for c in caps["captures"]:
             lines.append(f"- {c['variant']}: " + (f"did not run: {c['error']}" if "error" in c else
                                                    f"{c['wall_s']:.1f} s, {len(c['sha256'])} images"))
-        rep = getattr(args, "capture_repeat", None)
+        rep = caps["repeat"]
         if rep:
             lines.append(f"- {rep['variant']} made again in the same way: {rep['identical']} of {rep['images']} images "
                          "the same bytes")
-        cmp_ = getattr(args, "capture_comparison", None)
+        cmp_ = caps["comparison"]
         if cmp_:
             lines.append(f"- the two captures: {cmp_['identical']} of {cmp_['images']} images the same bytes; in the "
                          f"{cmp_['differing']} others at most {cmp_['share_of_values_differing']:.2e} of the raw values "
@@ -237,7 +254,6 @@ def main(argv=None) -> int:
     ap.add_argument("--child", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     scales = [float(s) for s in a.scales.split(",")]
-    a.scale_list = scales
     if a.compare:
         print(json.dumps(compare_files(Path(a.compare[0]), Path(a.compare[1])), indent=1))
         return 0
@@ -257,40 +273,20 @@ def main(argv=None) -> int:
             print(f"{v}: did not run: {results[-1]['error']}", flush=True)
         else:
             results.append(json.loads(p.stdout.strip().splitlines()[-1]))
-    if a.capture:
-        import tempfile
-
-        with tempfile.TemporaryDirectory(prefix="glossrig-variants-") as d:
-            ok = [r["variant"] for r in results if "error" not in r]
-            a.capture_results = []
-            for v in ok:
-                print(f"{v}: whole capture ...", flush=True)
-                a.capture_results.append(capture(v, Path(d) / v, min(scales)))
-            done = [c for c in a.capture_results if "error" not in c]
-            if len(done) >= 2:
-                a.capture_comparison = compare_captures(done[0], done[1], Path(d) / done[0]["variant"],
-                                                        Path(d) / done[1]["variant"])
-            if done:            # the first variant again: is a capture the same bytes within one variant?
-                v = done[0]["variant"]
-                again = capture(v, Path(d) / f"{v}.again", min(scales))
-                if "error" not in again:
-                    a.capture_repeat = {"variant": v, **compare_captures(done[0], again, Path(d) / v,
-                                                                         Path(d) / f"{v}.again")}
+    caps = whole_captures([r["variant"] for r in results if "error" not in r], min(scales)) if a.capture else None
     comparisons = {}
     if a.renders:
         ok = [r["variant"] for r in results if "error" not in r]
         for i, x in enumerate(ok):
             for y in ok[i + 1:]:
                 comparisons[f"{x} vs {y}"] = compare_files(Path(a.renders) / f"{x}.npz", Path(a.renders) / f"{y}.npz")
-    text = report(results, comparisons, a, machine())
+    text = report(results, comparisons, a, machine(), caps)
     out = Path(a.out)
     old = out.read_text() if out.exists() else "# The twin's renders on Mitsuba's variants\n\n"
     out.write_text(old.split(MEASURED)[0].rstrip() + "\n\n" + text)
     if a.json:
-        Path(a.json).write_text(json.dumps({"results": results, "comparisons": comparisons,
-                                            "captures": getattr(a, "capture_results", None),
-                                            "capture_comparison": getattr(a, "capture_comparison", None),
-                                            "capture_repeat": getattr(a, "capture_repeat", None)}, indent=1))
+        Path(a.json).write_text(json.dumps({"results": results, "comparisons": comparisons, "captures": caps},
+                                           indent=1))
     print(text)
     return 0
 
