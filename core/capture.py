@@ -26,6 +26,9 @@ MANIFEST = "capture.json"
 TRUTH = "truth.json"
 ROLES = ("calibration", "sequence", "checkerboard")
 REQUIRED = ("file", "role", "leds", "rotation", "repeat", "exposure_s", "iso", "aperture", "time", "sha256")
+#: the copy of the rig description every capture folder holds, written when the capture starts
+#: (``glossrig capture`` and ``glossrig simulate``); the manifest's ``rig`` names it
+RIG_COPY = "rig.toml"
 
 
 # ------------------------------------------------------------------ file names
@@ -246,6 +249,25 @@ def capture_complete(folder: str | Path) -> bool:
         return load_manifest(folder).complete
     except InputError:
         return False
+
+
+def check_rig_copy(folder: str | Path, rig_bytes: bytes, *, then: str, where: str | Path | None = None,
+                   copy: str = RIG_COPY) -> None:
+    """Refuse to add to, or to reuse, the capture in ``folder`` unless its copy of the rig description
+    (``copy``, default :data:`RIG_COPY`) holds exactly ``rig_bytes``, the rig file the caller works
+    with: one capture is taken with one rig. A missing copy is refused too - every capture writes its
+    copy before its manifest, so a manifest without it has lost it. The InputError names ``where``
+    (default: the copy) and ends with ``then``, what the user can do. The one check of the capture
+    orchestrator's resume, ``glossrig simulate``'s checkerboard resume and the studies' reuse of a
+    complete capture (``validation.common.check_reuse``)."""
+    f = Path(folder) / copy
+    try:
+        same = f.read_bytes() == rig_bytes
+    except OSError:
+        same = False
+    if not same:
+        raise InputError(f"the rig description differs from the capture's copy {f} (or that copy is missing); "
+                         f"{then}", path=f if where is None else where)
 
 
 def load_manifest(folder: str | Path) -> Manifest:

@@ -42,7 +42,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from glossrig.core.atomic import atomic_write_bytes, fsync_dir, fsync_file, publish
-from glossrig.core.capture import MANIFEST, ImageEntry, Manifest, load_manifest, now_iso, sha256_file
+from glossrig.core.capture import (MANIFEST, RIG_COPY, ImageEntry, Manifest, check_rig_copy, load_manifest, now_iso,
+                                   sha256_file)
 from glossrig.core.errors import GlossrigError, InputError
 
 from .camera import Camera
@@ -52,7 +53,6 @@ from .operator import Operator
 from .plan import CapturePlan, Shot
 from .progress import Progress
 
-RIG_COPY = "rig.toml"
 SET_ASIDE = "set_aside"
 DEFAULT_MIN_FREE_BYTES = 256 * 1024 * 1024
 
@@ -192,14 +192,8 @@ class CaptureRun:
                              f"{str(plan_meta.get('sha256'))[:12]}...), this one is {self.plan.path} (sha256 "
                              f"{self.plan.text_sha256[:12]}...); resume with the original plan or start a new "
                              "capture folder", path=where)
-        rig_copy = out / m.rig
-        try:
-            same_rig = rig_copy.read_bytes() == self._rig_bytes()
-        except OSError:
-            same_rig = False
-        if not same_rig:
-            raise InputError(f"the rig description differs from the capture's copy {rig_copy} (or that copy is "
-                             "missing); refusing to mix rigs in one capture", path=where)
+        check_rig_copy(out, self._rig_bytes(), copy=m.rig, where=where,
+                       then="refusing to mix rigs in one capture")
         old = m.meta.get("backends", {})
         for k, v in self.backends.items():
             if k in old and old[k] != v:

@@ -319,7 +319,18 @@ def test_resume_refuses_another_plan_or_sample(tmp_path):
     r3 = make(other2, PLAN.replace("test sample", "another sample"))
     with pytest.raises(InputError, match="refusing to mix samples"):
         capture(r3, out, resume=True)
+    # the capture's copy of the rig description edited, then lost: the same rig file no longer matches it
+    copy = out / load_manifest(out).rig
+    kept = copy.read_bytes()
+    copy.write_bytes(kept + b"\n# moved an LED\n")
+    with pytest.raises(InputError, match="differs from the capture's copy .*refusing to mix rigs"):
+        capture(make(tmp_path), out, resume=True)
+    copy.unlink()
+    with pytest.raises(InputError, match="or that copy is missing"):
+        capture(make(tmp_path), out, resume=True)
+    copy.write_bytes(kept)
     assert len(load_manifest(out).images) == 2
+    assert capture(make(tmp_path), out, resume=True).complete
 
 
 def test_resume_of_a_complete_capture_takes_nothing(tmp_path):

@@ -204,6 +204,11 @@ def test_resumed_checkerboard_views_are_byte_identical(tmp_path, monkeypatch):
     with pytest.raises(InputError, match=r"other options \(views: capture 3, now 4\)"):
         simulate(RIG, "lambert:0.5", "6", [0.0], 1, 0.1, 2, None, b, target="checkerboard", views=4, spp=1,
                  progress=False, resume=True)
+    kept = (b / "rig.toml").read_bytes()
+    (b / "rig.toml").write_bytes(kept.replace(b"thesis", b"edited", 1))
+    with pytest.raises(InputError, match="refusing to mix rigs"):
+        run(b, resume=True)
+    (b / "rig.toml").write_bytes(kept)
     run(b, resume=True)
     assert _images(a) == _images(b) and load_manifest(b).complete
     assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())

@@ -31,8 +31,8 @@ import numpy as np
 from tqdm import tqdm
 
 from glossrig.core.atomic import atomic_write_json
-from glossrig.core.capture import (TRUTH, ImageEntry, Manifest, check_rotation_tags, image_stem, load_manifest,
-                                   rotation_tag, sha256_file)
+from glossrig.core.capture import (RIG_COPY, TRUTH, ImageEntry, Manifest, check_rig_copy, check_rotation_tags,
+                                   image_stem, load_manifest, rotation_tag, sha256_file)
 from glossrig.core.errors import InputError
 from glossrig.core.models.materials import material_sha256, parse_material
 from glossrig.core.progress import progress_enabled
@@ -70,8 +70,6 @@ def parse_twin_material(spec: str):
     return material
 
 
-#: The copy of the rig description every capture folder holds (as ``glossrig capture`` writes it).
-RIG_COPY = "rig.toml"
 #: The manifest key under which ``simulate`` records the options that determine its images.
 OPTIONS_KEY = "simulate"
 
@@ -320,9 +318,7 @@ def simulate_checkerboard(rig, out: Path, scale: float, seed: int, views: int, s
     done: dict[int, ImageEntry] = {}
     if resume:
         man = load_manifest(out)
-        if (out / RIG_COPY).is_file() and (out / RIG_COPY).read_bytes() != rig_bytes:
-            raise InputError(f"--resume: the rig description differs from the capture's copy {out / RIG_COPY}; "
-                             "refusing to mix rigs in one capture", path=out)
+        check_rig_copy(out, rig_bytes, where=out, then="refusing to mix rigs in one capture (--resume)")
         for im in man.images:
             f = out / im.file
             if im.role == "checkerboard" and f.is_file() and sha256_file(f) == im.sha256:

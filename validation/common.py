@@ -31,7 +31,7 @@ import sys
 from pathlib import Path
 
 from glossrig.core.atomic import atomic_write_json
-from glossrig.core.capture import capture_complete, load_manifest, read_truth
+from glossrig.core.capture import capture_complete, check_rig_copy, load_manifest, read_truth
 from glossrig.core.errors import InputError
 from validation.paths import RIG
 
@@ -152,7 +152,7 @@ def check_reuse(out: Path, *args, rig: Path = RIG, extra=()) -> None:
     An option the capture does not record (``material_sha256``, recorded since 2026-12-04)
     cannot be compared: the capture is reused with a warning on stderr naming the option, so
     work folders made before stay usable and say what was not checked."""
-    from glossrig.twin.simulate import OPTIONS_KEY, RIG_COPY, describe_differences, differing_options
+    from glossrig.twin.simulate import OPTIONS_KEY, describe_differences, differing_options
 
     out = Path(out)
     options = simulate_options(*args, rig=rig, extra=extra)
@@ -171,11 +171,9 @@ def check_reuse(out: Path, *args, rig: Path = RIG, extra=()) -> None:
                          "folder (nothing was changed)", path=where)
     from glossrig.core.rig import load_rig
 
-    copy = out / RIG_COPY
-    if not copy.is_file() or copy.read_bytes() != Path(load_rig(rig).path).read_bytes():
-        raise InputError(f"the complete capture here was made with another rig description than {rig} (its copy "
-                         f"{RIG_COPY} differs); remove it or choose another work folder (nothing was changed)",
-                         path=where)
+    check_rig_copy(out, Path(load_rig(rig).path).read_bytes(), where=where,
+                   then=f"it was made with another rig description than {rig}: remove it or choose another work "
+                        "folder (nothing was changed)")
     if unrecorded:
         print(f"warning: {where}: reused without checking {describe_differences(recorded, options, unrecorded)}",
               file=sys.stderr, flush=True)
