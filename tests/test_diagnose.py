@@ -24,11 +24,13 @@ from conftest import RIG
 BLACK, WHITE, E_PER_DN, READ = 600.0, 15520.0, 0.6875, 4.4
 
 
-def synthetic_frames(seed, black_offset=0.0, nonlin=0.0, drift=0.0, hot=0.0, size=(60, 80)) -> FrameData:
-    """Two LEDs' exposure series; ``drift`` = gain slope per minute, ``hot`` = fraction of
-    pixels with a 200 e-/s dark current (smooth scene then, so that spikes can be told);
-    ``nonlin``: the compression at white, one value or one per colour channel (R, G, B) of
-    the RGGB mosaic."""
+def synthetic_frames(seed, black_offset=0.0, nonlin=0.0, drift=0.0, hot=0.0, size=(60, 80),
+                     jitter=0.0) -> FrameData:
+    """Two LEDs' exposure series; ``drift`` = gain slope per minute (one value, or one per LED),
+    ``hot`` = fraction of pixels with a 200 e-/s dark current (smooth scene then, so that spikes
+    can be told); ``nonlin``: the compression at white, one value or one per colour channel (R,
+    G, B) of the RGGB mosaic; ``jitter``: relative RMS of an independent gain per frame (the
+    twin's led_jitter)."""
     rng = np.random.default_rng(seed)
     t = 0.00025 * 2.0 ** np.arange(16)
     h, w = size
@@ -43,7 +45,10 @@ def synthetic_frames(seed, black_offset=0.0, nonlin=0.0, drift=0.0, hot=0.0, siz
         rate = rate + hot_mask * 200.0 / E_PER_DN
         times = 600.0 * k + np.cumsum(t + 9.0)
         tau = (times - times.mean()) / 60.0
-        x = rate[None] * t[:, None, None] * (1 + drift * tau)[:, None, None]
+        gain = 1 + (drift[k] if np.ndim(drift) else drift) * tau
+        if jitter:
+            gain = gain * (1 + jitter * rng.normal(size=len(t)))
+        x = rate[None] * t[:, None, None] * gain[:, None, None]
         x = x + rng.normal(0.0, 1.0, x.shape) * np.sqrt(x / E_PER_DN + READ ** 2)   # no clip at black
         x = np.minimum(x, WHITE - BLACK)                          # full well
         c = np.asarray(nonlin, float)[np.array([[0, 1], [1, 2]])[np.arange(h)[:, None] % 2, np.arange(w)[None] % 2]] \

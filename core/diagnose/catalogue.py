@@ -227,6 +227,10 @@ class CauseResult:
     #: the model a BRDF-space instrument cause was fitted on: "ward" (the fit's Ward lobe) or "material" (the
     #: best material model, :func:`instrument_bases`; :func:`model_of` gives that model)
     fitted_on: str = "ward"
+    #: the cause's own significance test, where the pooled held-out gain is the wrong statistic for it: a dict
+    #: with at least ``passed`` (led_drift: the trend of the frame gains, :func:`.frame_gains.drift_test`). It
+    #: replaces the gain threshold and the fold rule; the held-out gains are still reported and rank the causes
+    test: dict | None = None
 
     @property
     def kind(self) -> str:
@@ -259,7 +263,10 @@ class CauseResult:
     def significant(self) -> bool:
         """Identifiable, not refuted, pooled held-out gain above the threshold, the fold rule of
         :func:`consistent_folds`, and - for a BRDF-space cause with a robust score - a lower median
-        held-out relative residual than its base model's (module docstring)."""
+        held-out relative residual than its base model's (module docstring). A cause with its own
+        :attr:`test`: identifiable, not refuted and that test passed."""
+        if self.test is not None:
+            return bool(self.identifiable and self.refuted is None and self.test["passed"])
         rg = self.robust_gain
         robust_ok = rg is None or rg > 0
         return bool(self.identifiable and self.refuted is None and self.gain > self.threshold
@@ -281,7 +288,7 @@ class CauseResult:
                 "identifiable": self.identifiable, "note": self.note, "profile": self.profile,
                 "blocked_by": self.blocked_by, "vs_material": self.vs_material, "eligible": self.eligible,
                 "refuted": self.refuted, "frame_signature": self.frame_signature, "robust": self.robust,
-                "physics": self.doc}
+                "test": self.test, "physics": self.doc}
 
 
 def chi2(res: np.ndarray, sigma: np.ndarray) -> float:

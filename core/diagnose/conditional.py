@@ -185,8 +185,19 @@ def _conditional(fs, sel_terms, sel_thetas, base_err, cand: CauseResult, folds) 
         errs.append(_held_out(fs, sel_terms + [t], th, fold))
         fits.append(th)
     gains = [(e0 - e1) / e0 if e0 > 0 else 0.0 for e0, e1 in zip(base_err, errs)]
+    test = None
+    if cand.test is not None:
+        # a cause with its own test takes it again on the frames with the selected terms undone, at their
+        # estimates on top of it (the mean of the folds' joint fits)
+        from glossrig.core.diagnose.frame_gains import drift_test
+
+        est = [np.mean([fit[k] for fit in fits], axis=0) for k in range(len(sel_terms))]
+        test = drift_test(fs, lambda i: dict(zip(("offset", "gain", "c"),
+                                                 _compose([t.kw(i, th) for t, th in zip(sel_terms, est)]))))
+        if test is None:
+            test = {"passed": False, "rule": "no frame-gain series to test"}
     r = CauseResult(cand.name, cand.space, "", {}, {}, float(np.mean(errs)), float(np.mean(base_err)), gains,
-                    cand.n_extra_params)
+                    cand.n_extra_params, test=test)
     return r, fits
 
 
@@ -212,21 +223,25 @@ def explain_away(fs: FrameSet, causes: list[CauseResult]) -> None:
             est = np.mean([fit[-1] for fit in fits], axis=0)
             c.params["conditional"] = {
                 "on": [s.name for s in sel], "error": r.error, "base_error": r.base_error, "gain": r.gain,
-                "fold_gains": r.fold_gains, "threshold": r.threshold, "significant": r.significant,
+                "fold_gains": r.fold_gains, "threshold": r.threshold, "significant": r.significant, "test": r.test,
                 "estimate": est.tolist(), "fold_estimates": [fit[-1].tolist() for fit in fits],
                 "rule": "forward stepwise: re-fitted on top of the selected causes (all terms re-fitted per "
                         "fold), held-out gain over them"}
             if not r.significant:
                 c.blocked_by = on
-                c.note = (c.note + "; " if c.note else "") + (
-                    f"explained by {on}: fitted on top of it the held-out gain is {r.gain:.4%} "
-                    f"(folds {', '.join(f'{g:.4%}' for g in r.fold_gains)}; threshold {r.threshold:.4%}), "
-                    f"alone {c.gain:.4%}")
+                why = (f"its test on top of it: {r.test['rule']}" if r.test is not None and "chi2" not in r.test else
+                       f"its test on top of it: chi^2 {r.test['chi2']:.1f} against {r.test['bound']:.1f}"
+                       if r.test is not None else
+                       f"fitted on top of it the held-out gain is {r.gain:.4%} (folds "
+                       f"{', '.join(f'{g:.4%}' for g in r.fold_gains)}; threshold {r.threshold:.4%})")
+                c.note = (c.note + "; " if c.note else "") + f"explained by {on}: {why}, alone {c.gain:.4%}"
         alive = [(c, r, fits) for c, r, fits in tested if r.significant]
         if not alive:
             return
         best, r, fits = max(alive, key=lambda x: x[1].gain)
         best.note = (best.note + "; " if best.note else "") + (
+            f"still passes its test on top of {on} (chi^2 {r.test['chi2']:.1f} against {r.test['bound']:.1f}): kept"
+            if r.test is not None else
             f"still gains {r.gain:.4%} held-out on top of {on} (threshold {r.threshold:.4%}): kept")
         sel.append(best)
         sel_terms.append(term(fs, best.name))

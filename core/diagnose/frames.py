@@ -391,7 +391,8 @@ def _drift_cause(fs: FrameSet) -> CauseResult:
     doc = ("LED drift (thesis 4.3.3, fig. 4.12): the LED's output changes slowly while its exposure sequence is "
            "taken (warm-up, temperature), a gain 1 + a tau with tau the frame's time from the middle of the "
            "sequence. Every pixel of a frame shares the gain, whatever its signal level: the residual follows "
-           "capture order, not DN. Fitted per LED (a in 1/min).")
+           "capture order, not DN. Fitted per LED (a in 1/min) on the gains of the frames, against the "
+           "frame-to-frame jitter those gains show (glossrig.core.diagnose.frame_gains).")
     bounds = BOUNDS["led_drift"]
     base_err = ext_err = 0.0
     gains = []
@@ -415,13 +416,28 @@ def _drift_cause(fs: FrameSet) -> CauseResult:
         fold_est.append([float(a) for a in slopes])
         for i, a in enumerate(slopes):
             per_led.setdefault(str(fs.led[i]), []).append(a)
-    params = {"gain_slope_per_min": {k: float(np.mean(v)) for k, v in per_led.items()}, "unit": "1/min",
-              "fold_estimates": fold_est}
-    stderr = {"gain_slope_per_min": {k: float(abs(v[0] - v[1]) / 2) for k, v in per_led.items()}}
-    mag = float(max(abs(np.mean(v)) for v in per_led.values()))
+    from glossrig.core.diagnose.frame_gains import drift_test
+
+    test = drift_test(fs)
+    led_slopes: dict[str, float]
+    if test is None:
+        led_slopes = {k: float(np.mean(v)) for k, v in per_led.items()}
+        params: dict = {"gain_slope_per_min": led_slopes, "unit": "1/min", "fold_estimates": fold_est}
+        stderr = {"gain_slope_per_min": {k: float(abs(v[0] - v[1]) / 2) for k, v in per_led.items()}}
+        note = "magnitude = largest |gain slope| (1/min); fold spread as uncertainty; no frame-gain series to test"
+    else:
+        led_slopes = test["slope_per_min"]
+        params = {"gain_slope_per_min": led_slopes, "unit": "1/min", "fold_estimates": fold_est,
+                  "jitter": test["jitter"]}
+        stderr = {"gain_slope_per_min": test["stderr_per_min"]}
+        note = ("slopes and standard errors from the frame gains' trend, significance from its test "
+                f"(chi^2 {test['chi2']:.1f} against {test['bound']:.1f}, {test['dof']} LEDs; jitter "
+                f"{test['jitter']:.2%}); fold_estimates: the per-pixel fits of the held-out score; "
+                "magnitude = largest |gain slope| (1/min)")
+    mag = float(max(abs(v) for v in led_slopes.values()))
     r = CauseResult("led_drift", "frames", doc, params, stderr, ext_err, base_err, gains, len(fs.Z),
-                    magnitude=mag)
-    r.note = "magnitude = largest |gain slope| (1/min); fold spread as uncertainty"
+                    magnitude=mag, test=test)
+    r.note = note
     return r
 
 

@@ -534,6 +534,8 @@ def main(argv=None):
     ap.add_argument("--leds", default=",".join(map(str, LEDS)),
                     help="LEDs of every capture: ids or a row name (default: %(default)s; a work folder keeps the LEDs "
                          "it was started with, WORK/leds.json)")
+    ap.add_argument("--only", help="trial numbers (e.g. 24,25,26): make, or with --rediagnose diagnose again, only "
+                                   "these (with --nulls 0 no null captures); the report summarises every trial in WORK")
     ap.add_argument("--summary-only", action="store_true", help="rewrite the Markdown from WORK/trials.json")
     ap.add_argument("--keep-raws", action="store_true",
                     help="keep each trial's raw files (about 110 MB a trial) so --rediagnose need not simulate again")
@@ -542,6 +544,10 @@ def main(argv=None):
                          "diagnosis ran with other code (on its kept raws, else on the capture made again "
                          "from the same seed)")
     a = ap.parse_args(argv)
+    try:
+        only = None if a.only is None else {int(x) for x in a.only.split(",") if x.strip()}
+    except ValueError:
+        raise InputError(f"--only: expected trial numbers separated by commas, got {a.only!r}") from None
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
     use_leds(work, a.leds)
@@ -562,7 +568,7 @@ def main(argv=None):
         one_calibration(bases[MATERIALS[0]][0], a.camera)
         if a.rediagnose:
             for i, t in enumerate(done):
-                if stale(t, a.diagnose_code):
+                if stale(t, a.diagnose_code) and (only is None or t["trial"] in only):
                     k = t["trial"]
                     done[i] = trial(k, work, a, bases, ref, reuse=has_raws(work / f"t{k:03d}"), prev=t)
                     store.write_text(json.dumps(done, indent=1))
@@ -570,7 +576,7 @@ def main(argv=None):
                           flush=True)
         have = {t["trial"] for t in done}
         for k in range(a.trials):
-            if k in have:
+            if k in have or (only is not None and k not in only):
                 continue
             done.append(trial(k, work, a, bases, ref))
             store.write_text(json.dumps(done, indent=1))

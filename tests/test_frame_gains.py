@@ -1,0 +1,74 @@
+"""The frame gains of an LED's exposure sequence and the drift test on them
+(:mod:`glossrig.core.diagnose.frame_gains`; issue 14).
+
+Stacks: :func:`test_diagnose.synthetic_frames` (two LEDs, 60 x 80 pixels, 16 exposures,
+photon-transfer noise), with a drift (gain slope per minute) and an LED jitter (relative RMS
+per frame) drawn per seed. Tolerances come from the test's own noise model:
+
+* With no drift the statistic is chi^2 with one degree of freedom per LED (2): the mean of
+  ``N`` null stacks has a standard deviation of sqrt(2 k / N); it must lie within 4 of them
+  of k. (With the rates treated as known instead of profiled out the slopes' standard errors
+  were three times too small: null statistics of 17 where chi^2(2) gives 2.)
+* The slopes' standard errors are uncertainties: every drawn slope lies within 4 of them of
+  the truth.
+* The jitter is estimated from 2 x (16 - 2) = 28 degrees of freedom: a relative standard
+  deviation of 1 / sqrt(2 x 28) = 13 %; it must lie within 4 of those of the drawn value.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from glossrig.core.diagnose.frame_gains import drift_test
+from glossrig.core.diagnose.frames import FrameSet, frame_causes
+
+from test_diagnose import synthetic_frames
+
+N_NULL = 12
+
+
+def _test(seed, **kw):
+    return drift_test(FrameSet(synthetic_frames(seed, **kw)))
+
+
+def test_null_statistic_is_chi2_with_one_degree_per_led():
+    stats = [_test(100 + s)["chi2"] for s in range(N_NULL)]
+    k = 2
+    assert abs(np.mean(stats) - k) < 4 * np.sqrt(2 * k / N_NULL), stats
+    assert max(stats) < _test(100)["bound"]
+
+
+@pytest.mark.parametrize("seed", [21, 22, 23])
+def test_drift_beside_led_jitter_is_found_with_slopes_that_cover_the_truth(seed):
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(0.008, 0.015, 2) * rng.choice([-1, 1], 2)
+    jitter = 0.005
+    t = _test(seed, drift=a, jitter=jitter)
+    assert t["passed"], t
+    for k, led in enumerate(("6", "9")):
+        assert abs(t["slope_per_min"][led] - a[k]) < 4 * t["stderr_per_min"][led], (t, a)
+    assert abs(t["jitter"] - jitter) < 4 * 0.13 * jitter, t
+    causes = {c.name: c for c in frame_causes(synthetic_frames(seed, drift=a, jitter=jitter))}
+    assert causes["led_drift"].eligible and causes["led_drift"].test["passed"]
+
+
+@pytest.mark.parametrize("seed", [31, 32])
+def test_led_jitter_alone_is_no_drift(seed):
+    """The frame-to-frame jitter of a real LED (0.5 %) is scatter about no trend: the test measures it
+    and does not call it a drift; the held-out frame score alone cannot tell."""
+    t = _test(seed, jitter=0.005)
+    assert not t["passed"] and t["jitter"] > 0.002, t
+    causes = {c.name: c for c in frame_causes(synthetic_frames(seed, jitter=0.005))}
+    assert not causes["led_drift"].significant
+
+
+def test_drift_of_one_led_on_an_ideal_capture_is_found_on_that_led():
+    """No jitter, a drift of 0.009 / min on LED 6 and none on LED 9: a non-centrality of
+    (0.009 / 0.00107)^2 = 71 (0.00107 / min the slopes' standard error on these stacks), so the
+    statistic clears the bound of 19.3 with a margin of three of its standard deviations; the drift
+    is named, on LED 6's slope, and LED 9's slope is zero within its uncertainty."""
+    causes = {c.name: c for c in frame_causes(synthetic_frames(41, drift=[0.009, 0.0]))}
+    d = causes["led_drift"]
+    assert d.significant and d.eligible, d.test
+    assert abs(d.params["gain_slope_per_min"]["6"] - 0.009) < 4 * d.stderr["gain_slope_per_min"]["6"]
+    assert abs(d.params["gain_slope_per_min"]["9"]) < 4 * d.stderr["gain_slope_per_min"]["9"]
