@@ -25,12 +25,12 @@ BLACK, WHITE, E_PER_DN, READ = 600.0, 15520.0, 0.6875, 4.4
 
 
 def synthetic_frames(seed, black_offset=0.0, nonlin=0.0, drift=0.0, hot=0.0, size=(60, 80),
-                     jitter=0.0) -> FrameData:
+                     jitter=0.0, shutter=0.0) -> FrameData:
     """Two LEDs' exposure series; ``drift`` = gain slope per minute (one value, or one per LED),
     ``hot`` = fraction of pixels with a 200 e-/s dark current (smooth scene then, so that spikes
     can be told); ``nonlin``: the compression at white, one value or one per colour channel (R,
     G, B) of the RGGB mosaic; ``jitter``: relative RMS of an independent gain per frame (the
-    twin's led_jitter)."""
+    twin's led_jitter); ``shutter``: seconds the true exposure exceeds the nominal one."""
     rng = np.random.default_rng(seed)
     t = 0.00025 * 2.0 ** np.arange(16)
     h, w = size
@@ -48,7 +48,7 @@ def synthetic_frames(seed, black_offset=0.0, nonlin=0.0, drift=0.0, hot=0.0, siz
         gain = 1 + (drift[k] if np.ndim(drift) else drift) * tau
         if jitter:
             gain = gain * (1 + jitter * rng.normal(size=len(t)))
-        x = rate[None] * t[:, None, None] * gain[:, None, None]
+        x = rate[None] * (t + shutter)[:, None, None] * gain[:, None, None]
         x = x + rng.normal(0.0, 1.0, x.shape) * np.sqrt(x / E_PER_DN + READ ** 2)   # no clip at black
         x = np.minimum(x, WHITE - BLACK)                          # full well
         c = np.asarray(nonlin, float)[np.array([[0, 1], [1, 2]])[np.arange(h)[:, None] % 2, np.arange(w)[None] % 2]] \

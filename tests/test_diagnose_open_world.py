@@ -391,36 +391,18 @@ def test_beckmann_lobe_is_normalised_reciprocal_and_fitted():
 
 # ----------------------------------------------------------------- shutter (exposure-time) error
 
-def _shutter_frames(seed, delta):
-    """Two LEDs' exposure series (photon-transfer noise) exposed for t + delta at nominal t."""
-    from glossrig.core.diagnose.data import FrameData, LedFrames
-
-    from test_diagnose import BLACK, E_PER_DN, READ, WHITE
-
-    rng = np.random.default_rng(seed)
-    t = 0.00025 * 2.0 ** np.arange(16)
-    leds = []
-    for k, led in enumerate((6, 9)):
-        rate = np.exp(rng.uniform(np.log(20), np.log(2e6), (60, 80)))
-        x = rate[None] * (t + delta)[:, None, None]
-        x = x + rng.normal(0.0, 1.0, x.shape) * np.sqrt(x / E_PER_DN + READ ** 2)
-        dn = np.clip(np.round(BLACK + np.minimum(x, WHITE - BLACK)), 0, WHITE).astype(np.float32)
-        leds.append(LedFrames(led, 0.0, dn, t, 600.0 * k + np.cumsum(t + 9.0), np.full((60, 80), BLACK), (0, 0)))
-    return FrameData(leds, WHITE, E_PER_DN, READ)
-
-
 def test_shutter_error_found_with_magnitude():
     from glossrig.core.diagnose.frames import frame_causes
 
-    from test_diagnose import winner
+    from test_diagnose import synthetic_frames, winner
 
     delta = float(np.random.default_rng(8).uniform(2e-5, 8e-5))        # 8-32 % of the shortest exposure
-    causes = frame_causes(_shutter_frames(8, delta))
+    causes = frame_causes(synthetic_frames(8, shutter=delta))
     w = winner(causes)
     assert w is not None and w.name == "shutter_error" and w.kind == "instrument", [
         (c.name, round(c.gain, 5), c.significant) for c in causes]
     assert abs(w.params["delta_s"] - delta) < 0.15 * delta, (w.params, delta)
-    assert winner(frame_causes(_shutter_frames(9, 0.0))) is None
+    assert winner(frame_causes(synthetic_frames(9))) is None
 
 
 def test_unexplained_variables_are_ordered_by_held_out_gain():

@@ -72,3 +72,14 @@ def test_drift_of_one_led_on_an_ideal_capture_is_found_on_that_led():
     assert d.significant and d.eligible, d.test
     assert abs(d.params["gain_slope_per_min"]["6"] - 0.009) < 4 * d.stderr["gain_slope_per_min"]["6"]
     assert abs(d.params["gain_slope_per_min"]["9"]) < 4 * d.stderr["gain_slope_per_min"]["9"]
+
+
+@pytest.mark.parametrize("seed", [51, 52])
+def test_a_shutter_error_is_not_taken_for_a_drift(seed):
+    """A shutter error of 2e-5 - 6e-5 s (8 - 24 % of the shortest exposure) bends every LED's gains alike,
+    most at the shortest exposures: the shared shutter term takes it (within 4 of its standard errors of the
+    drawn delta), and no LED's trend is left to call a drift."""
+    delta = float(np.random.default_rng(seed).uniform(2e-5, 6e-5))
+    t = _test(seed, shutter=delta)
+    assert not t["passed"], t
+    assert abs(t["shutter_term_s"] - delta) < 4 * t["shutter_term_stderr_s"], (t, delta)

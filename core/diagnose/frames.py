@@ -375,10 +375,21 @@ def shutter_cause(fs: FrameSet) -> CauseResult:
            "effective exposure time by the shutter's opening and closing; measured offsets are tens of "
            "microseconds). DN - black = rate (t + delta): the relative error delta / t is largest at the "
            "shortest times and the same at every signal level and pixel, unlike a black offset (additive in DN, "
-           "largest for dark pixels) or a non-linearity (a function of the DN level).")
-    return _frame_cause(fs, "shutter_error", doc, "delta_s", "seconds added to every nominal exposure",
-                        shutter_bounds(fs),
-                        lambda d: (lambda i, M: _linear_pred(fs, i, M, gain=(fs.T[i] + d) / fs.T[i])))
+           "largest for dark pixels) or a non-linearity (a function of the DN level). Tested on the gains of the "
+           "frames, the same for every LED, beside each LED's drift (glossrig.core.diagnose.frame_gains).")
+    from glossrig.core.diagnose.frame_gains import shutter_test
+
+    r = _frame_cause(fs, "shutter_error", doc, "delta_s", "seconds added to every nominal exposure",
+                     shutter_bounds(fs),
+                     lambda d: (lambda i, M: _linear_pred(fs, i, M, gain=(fs.T[i] + d) / fs.T[i])))
+    r.test = shutter_test(fs)
+    if r.test is not None:
+        r.params["delta_s"], r.stderr["delta_s"] = r.test["delta_s"], r.test["stderr_s"]
+        r.magnitude = r.test["delta_s"]
+        r.note = ("delta and its standard error from the frame gains' shutter term, significance from its test "
+                  f"(chi^2 {r.test['chi2']:.1f} against {r.test['bound']:.1f}); fold_estimates: the per-pixel fits "
+                  "of the held-out score")
+    return r
 
 
 def shutter_bounds(fs: FrameSet) -> tuple[float, float]:
