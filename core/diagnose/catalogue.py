@@ -14,7 +14,11 @@ squared normalised residual, :func:`chi2`):
   one LED out (per-LED parameters, or one LED: the two halves of the pixel rows).
 * ``frames``: raw DN of every exposure against a linear sensor and a steady LED,
   ``DN - black = rate * t`` with one rate per pixel fitted on the training
-  exposures. Folds: even / odd exposure index (interleaved in time).
+  exposures. Folds: even / odd exposure index (interleaved in time). The two causes
+  that act as a gain per frame - the LED's drift and the shutter error - are judged
+  by their own test on the frames' gains instead (:attr:`CauseResult.test`,
+  :mod:`.frame_gains`): the held-out gain of this space scores a slow trend against
+  every pixel's photon noise and has no place for the LED's frame-to-frame jitter.
 * ``pixels``: each LED's per-pixel rate against the 3x3 median of its own CFA
   colour (a smooth image). Folds: even / odd exposure index, the hot-pixel set found
   under every LED in the training exposures.
