@@ -83,3 +83,19 @@ def test_a_shutter_error_is_not_taken_for_a_drift(seed):
     t = _test(seed, shutter=delta)
     assert not t["passed"], t
     assert abs(t["shutter_term_s"] - delta) < 4 * t["shutter_term_stderr_s"], (t, delta)
+
+
+def test_report_says_how_the_drift_was_judged(tmp_path):
+    """report.json keeps the drift's test; report.md names it as the reason beside the held-out gain it did
+    not need, and its table shows the test's chi^2 against its bound where a threshold would stand."""
+    from glossrig.core.diagnose.report import read_report, write_report
+
+    causes = frame_causes(synthetic_frames(41, drift=[0.009, 0.0]))
+    rep = write_report(tmp_path, causes, {"frames": 1.0}, {}, {}, plots=False)
+    assert rep["verdict"] == "led_drift"
+    back = {c["name"]: c for c in read_report(tmp_path / "report.json")["causes"]}
+    t = back["led_drift"]["test"]
+    assert t["passed"] and t["chi2"] > t["bound"] and back["led_drift"]["significant"]
+    md = (tmp_path / "report.md").read_text()
+    assert "`led_drift` passes its test on the frames' gains (chi^2" in md
+    assert f"test chi^2 {t['chi2']:.3g} / {t['bound']:.3g}" in md

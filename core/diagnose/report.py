@@ -280,6 +280,9 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
                                "consistent_folds) and the pooled relative gain "
                                "exceeds gain_threshold + per_extra_parameter * extra parameters of its space, "
                                "a material model also lowering the median held-out relative residual (robust); "
+                               "led_drift and shutter_error, gains of whole frames, by their own test on the frames' "
+                               "gains instead (the cause's 'test': a chi^2 against its bound at the 4-sigma tail, "
+                               "glossrig.core.diagnose.frame_gains); "
                                "the verdict is the largest significant gain, frame/pixel-space causes first, "
                                "material models by their robust gain; "
                                "a BRDF-space instrument cause is fitted on top of the best material model and "
@@ -314,8 +317,12 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
                              for x in rep["unexplained_variables"] if x in by_var) + ".")
     else:
         w = next(c for c in causes if c.name == v)
-        L.append(f"`{v}` lowers the held-out error of the {w.space}-space model from {w.base_error:.4g} to "
-                 f"{w.error:.4g} (gain {w.gain:.1%}); parameters {json.dumps(_num(w.params))} "
+        how = (f"passes its test on the frames' gains (chi^2 {w.test['chi2']:.4g} against {w.test['bound']:.4g}, "
+               f"{w.test['dof']} degree(s) of freedom; frame-to-frame jitter {w.test['jitter']:.2%}; the held-out "
+               f"gain of the {w.space}-space model is {w.gain:.3%})" if w.test is not None and "chi2" in w.test else
+               f"lowers the held-out error of the {w.space}-space model from {w.base_error:.4g} to "
+               f"{w.error:.4g} (gain {w.gain:.1%})")
+        L.append(f"`{v}` {how}; parameters {json.dumps(_num(w.params))} "
                  f"+- {json.dumps(_num(w.stderr))} (statistical only - noise or fold spread; excludes calibration "
                  "and model error, so not the parameters' full uncertainty).")
     L += _stray_frames_lines(meta.get("stray_light_frames"))
@@ -331,12 +338,16 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
           "may fail: a sign test at 5 %) and the pooled gain "
           "exceeds its space's threshold plus a penalty per extra parameter ("
           + "; ".join(f"{k}: {t:.2%} + {p:.2%}" for k, (t, p) in THRESHOLDS.items())
-          + "). Sensor-level (frames, pixels) causes are named first: light and geometry causes cannot bend "
+          + "); led_drift and shutter_error are judged by their own test on the frames' gains instead (the "
+          "threshold column shows its chi^2 against its bound). Sensor-level (frames, pixels) causes are named "
+          "first: light and geometry causes cannot bend "
           "the raw exposure series.", "",
           "| cause | space | gain | threshold | eligible | params | note |", "|---|---|---|---|---|---|---|"]
     for c in causes:
         p = {k: val for k, val in _num(c.params).items() if k not in ("fold_estimates", "profile")}
-        L.append(f"| {c.name} ({c.kind}) | {c.space} | {c.gain:.2%} | {c.threshold:.2%} | {c.eligible} | "
+        bar = (f"test chi^2 {c.test['chi2']:.3g} / {c.test['bound']:.3g}" if c.test is not None and "chi2" in c.test
+               else f"{c.threshold:.2%}")
+        L.append(f"| {c.name} ({c.kind}) | {c.space} | {c.gain:.2%} | {bar} | {c.eligible} | "
                  f"`{json.dumps(p)}` | {c.note} |")
     if unexplained:
         L += ["", "## Residual structure no cause explains", "",
