@@ -99,3 +99,20 @@ def test_report_says_how_the_drift_was_judged(tmp_path):
     md = (tmp_path / "report.md").read_text()
     assert "`led_drift` passes its test on the frames' gains (chi^2" in md
     assert f"test chi^2 {t['chi2']:.3g} / {t['bound']:.3g}" in md
+
+
+def test_each_rotation_of_an_led_has_its_own_drift():
+    """A capture at two rotations sequences every LED once per rotation, an hour apart: LED 6 drifts in the
+    first and not in the second, and the slopes are kept apart, labelled by LED and rotation."""
+    from dataclasses import replace
+
+    from glossrig.core.diagnose.data import FrameData
+
+    a = synthetic_frames(61, drift=[0.009, 0.0])
+    b = synthetic_frames(62)
+    leds = a.leds + [replace(lf, rotation=90.0, time_s=lf.time_s + 3600.0) for lf in b.leds]
+    t = drift_test(FrameSet(FrameData(leds, a.white, a.e_per_dn, a.read_dn)))
+    assert sorted(t["slope_per_min"]) == ["6@0deg", "6@90deg", "9@0deg", "9@90deg"] and t["passed"], t
+    assert abs(t["slope_per_min"]["6@0deg"] - 0.009) < 4 * t["stderr_per_min"]["6@0deg"], t
+    for k in ("6@90deg", "9@0deg", "9@90deg"):
+        assert abs(t["slope_per_min"][k]) < 4 * t["stderr_per_min"][k], (k, t)

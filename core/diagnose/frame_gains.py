@@ -147,8 +147,9 @@ def _trend(gs, covs, taus, inv_t, s2: float):
 
 @dataclass
 class GainSeries:
-    """The frame gains' fit of a capture (:func:`gain_series`): per LED its slope in capture time
-    (relative, 1/min) with their covariance; the shutter error (s) the gains show with its standard
+    """The frame gains' fit of a capture (:func:`gain_series`): per LED sequence (``leds``: the labels of
+    :class:`.frames.FrameSet`, the LED's id, with its rotation where there are several) its slope in capture
+    time (relative, 1/min) with their covariance; the shutter error (s) the gains show with its standard
     error; the jitter (relative RMS per frame) the fit measured."""
 
     leds: list[str]
@@ -176,7 +177,7 @@ def gain_series(fs, terms=None) -> GainSeries | None:
         covs.append(cov)
         taus.append(fs.tau[i][seen, 0])
         inv_t.append(t_min / fs.T[i][seen, 0])
-        leds.append(str(fs.led[i]))
+        leds.append(fs.label[i])
     if not gs:
         return None
     fit = _trend(gs, covs, taus, inv_t, 0.0)

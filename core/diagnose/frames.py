@@ -108,6 +108,10 @@ class FrameSet:
             self.led.append(lf.led)
             self.colour.append(lf.colours().ravel()[idx])
         self.n_exp = [z.shape[0] for z in self.Z]
+        #: a label per sequence: the LED's id, with its rotation where the capture has several (an LED is
+        #: then sequenced once per rotation, each with its own drift)
+        several = len({lf.rotation for lf in fd.leds}) > 1
+        self.label = [f"{lf.led}@{lf.rotation:g}deg" if several else str(lf.led) for lf in fd.leds]
         # Fixed variances (EMVA 1288) from the base model's prediction: a chi^2 whose variance moves
         # with the prediction, sum (z - mu)^2 / V(mu), is minimised by mu too high by ~1 / (2 K) DN
         # (Pearson's chi^2 for Poisson counts; K = 0.69 e-/DN here: 0.7 DN). Measured on null
@@ -426,7 +430,7 @@ def _drift_cause(fs: FrameSet) -> CauseResult:
         gains.append((e0 - e1) / e0)
         fold_est.append([float(a) for a in slopes])
         for i, a in enumerate(slopes):
-            per_led.setdefault(str(fs.led[i]), []).append(a)
+            per_led.setdefault(fs.label[i], []).append(a)
     from glossrig.core.diagnose.frame_gains import drift_test
 
     test = drift_test(fs)
