@@ -102,6 +102,9 @@ if TYPE_CHECKING:
     from glossrig.core.diagnose.material_models import LobeFit
 
 GAIN_THRESHOLD = 0.02      # relative held-out gain a BRDF-space cause must beat (null captures stay below)
+#: the level, in sigma (two-sided normal tail, 6.3e-5), of diagnose's chi^2 tests of a witness or a cause's own
+#: statistic: the marker band's LED offsets (:mod:`.marker_band`) and the frame gains (:mod:`.frame_gains`)
+TEST_Z = 4.0
 PARAM_PENALTY = 0.002      # added per extra parameter
 #: (threshold, penalty per extra parameter) of each residual space, calibrated on null captures
 #: (validation/diagnose/blind_study.md). BRDF space: null gains up to 0.5 % (the pipeline's own

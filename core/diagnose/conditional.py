@@ -189,11 +189,11 @@ def _conditional(fs, sel_terms, sel_thetas, base_err, cand: CauseResult, folds) 
     if cand.test is not None:
         # a cause with its own test takes it again on the frames with the selected terms undone, at their
         # estimates on top of it (the mean of the folds' joint fits)
-        from glossrig.core.diagnose.frame_gains import TESTS
+        from glossrig.core.diagnose.frame_gains import TESTS, gain_series
 
         est = [np.mean([fit[k] for fit in fits], axis=0) for k in range(len(sel_terms))]
-        test = TESTS[cand.name](fs, lambda i: dict(zip(("offset", "gain", "c"),
-                                                       _compose([t.kw(i, th) for t, th in zip(sel_terms, est)]))))
+        test = TESTS[cand.name](gain_series(fs, lambda i: dict(zip(
+            ("offset", "gain", "c"), _compose([t.kw(i, th) for t, th in zip(sel_terms, est)])))))
         if test is None:
             test = {"passed": False, "rule": "no frame-gain series to test"}
     r = CauseResult(cand.name, cand.space, "", {}, {}, float(np.mean(errs)), float(np.mean(base_err)), gains,

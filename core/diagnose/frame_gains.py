@@ -14,7 +14,7 @@ covariance is the inverse of the Gauss-Newton information with the rates *profil
 (the Schur complement of the rates' block): a pixel seen in a few frames only tells the
 gains of those frames relative to each other, and treating the rates as known understated
 the slope's standard error three-fold on synthetic null stacks (a null chi^2 of 17 with 2
-degrees of freedom; with the Schur complement the mean over 12 null stacks is 2.2).
+degrees of freedom; with the Schur complement the mean over the 12 null stacks of tests/test_frame_gains.py is 2.1).
 
 **The drift test** (:func:`drift_test`). Drift is a slow trend of the gains in capture
 time: per LED, ``g_e = alpha (1 + a tau_e)`` with tau_e the frame's time (minutes) from the
@@ -37,8 +37,8 @@ most of it. Measured on the eight-LED blind study (validation/diagnose/blind_stu
 threshold of 0.13 % for eight slopes. And the frame-to-frame jitter of a real LED (0.5 %,
 the twin's ``led_jitter``) is structure that held-out score does not expect. On the gains the
 drift is a trend in a short series whose scatter the test measures: on synthetic stacks with a
-drift of 0.006 /min the statistic is 44-53 against a bound of 19.3 (two LEDs), and with 0.5 %
-jitter and no drift it stays at 0.3-4.3.
+drift of 0.006 /min the statistic is 36-49 against a bound of 19.3 (two LEDs, six seeds), and with
+0.5 % jitter and no drift it stays at 0.8-3.8.
 
 **Shutter.** An exposure-time error delta is a frame gain too, ``1 + delta / t_e``, the same for
 every LED (it is the camera's), largest at the shortest exposures. Fitted alone, a trend in time
@@ -57,8 +57,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2, norm
 
-TEST_Z = 4.0            # the test's level in sigma: the marker band's (:data:`.marker_band.BAND_Z`)
-#: the upper tail at which the LEDs' summed chi^2 is significant: the two-sided TEST_Z-sigma tail (6.3e-5)
+from glossrig.core.diagnose.catalogue import TEST_Z
+
+#: the upper tail at which a test's chi^2 is significant: the two-sided TEST_Z-sigma tail (6.3e-5)
 TAIL = float(2 * norm.sf(TEST_Z))
 MIN_FRAMES = 4          # an LED with fewer frames that any pixel sees unclipped has no trend to test
 #: the scale degeneracy (gains x k, rates / k) is given this variance along the constant
@@ -104,10 +105,10 @@ def linearised(fs, i: int, offset=0.0, gain=None, c=0.0) -> tuple[np.ndarray, np
     W = 1.0 / fs.V[i]
     c = np.asarray(c, float)
     if np.any(c != 0.0):
-        cc = np.where(c == 0.0, 1e-12, c)
-        disc = np.maximum(1.0 - 4.0 * cc * z / fs.range, 1e-6)
-        x = fs.range / (2.0 * cc) * (1.0 - np.sqrt(disc))
-        W = W * (1.0 - 2.0 * cc * x / fs.range) ** 2
+        # the root of x - c x^2 / range = z near x = z, in the form without cancellation (exact at c = 0,
+        # where (range / 2c) (1 - sqrt(...)) loses every digit)
+        x = 2.0 * z / (1.0 + np.sqrt(np.maximum(1.0 - 4.0 * c * z / fs.range, 1e-6)))
+        W = W * (1.0 - 2.0 * c * x / fs.range) ** 2
         z = x
     if gain is not None:
         z = z / gain
@@ -199,11 +200,10 @@ def gain_series(fs, terms=None) -> GainSeries | None:
     return GainSeries(leds, slopes, cov, d / alpha * t_min, d_se / alpha * t_min, float(np.sqrt(s2)))
 
 
-def drift_test(fs, terms=None) -> dict | None:
-    """The drift test of the module docstring on a :class:`.frames.FrameSet` (``terms`` as
-    :func:`gain_series`'): the LEDs' slopes in capture time, their Wald chi^2 against its bound,
-    the jitter. None where :func:`gain_series` is."""
-    gsr = gain_series(fs, terms)
+def drift_test(gsr: GainSeries | None) -> dict | None:
+    """The drift test of the module docstring on a capture's frame gains (:func:`gain_series`): the
+    LEDs' slopes in capture time, their Wald chi^2 against its bound, the jitter. None without a
+    series."""
     if gsr is None:
         return None
     se = np.sqrt(np.diag(gsr.cov))
@@ -219,11 +219,10 @@ def drift_test(fs, terms=None) -> dict | None:
                     "per LED at the 4-sigma tail"}
 
 
-def shutter_test(fs, terms=None) -> dict | None:
-    """The shutter test (module docstring, "Shutter"): the shutter term of the frame gains' fit,
-    beside every LED's trend, against its standard error - (delta / se)^2 against chi^2 with one
-    degree of freedom at the 4-sigma tail. ``terms`` as :func:`gain_series`'; None where it is."""
-    gsr = gain_series(fs, terms)
+def shutter_test(gsr: GainSeries | None) -> dict | None:
+    """The shutter test (module docstring, "Shutter"): the shutter term of the frame gains' fit
+    (:func:`gain_series`), beside every LED's trend, against its standard error - (delta / se)^2
+    against chi^2 with one degree of freedom at the 4-sigma tail. None without a series."""
     if gsr is None:
         return None
     stat = (gsr.shutter_s / gsr.shutter_se_s) ** 2 if gsr.shutter_se_s > 0 else 0.0
@@ -235,6 +234,6 @@ def shutter_test(fs, terms=None) -> dict | None:
                     "one degree at the 4-sigma tail"}
 
 
-#: the causes tested on the frame gains, by name: the conditional step (:mod:`.conditional`) takes the
-#: same test again on top of the selected causes
+#: the causes tested on the frame gains, by name, each a function of :func:`gain_series`'s fit: the
+#: conditional step (:mod:`.conditional`) takes the same test again on the fit with the selected causes undone
 TESTS = {"led_drift": drift_test, "shutter_error": shutter_test}

@@ -299,8 +299,11 @@ def _frame_causes(fd: FrameData | FrameSet, log=None) -> list[CauseResult]:
                      BOUNDS["sensor_nonlinearity"],
                      lambda c: (lambda i, M: _linear_pred(fs, i, M, c=c))))
     add(channel_response_cause(fs, out[-1]))
-    add(shutter_cause(fs))
-    add(_drift_cause(fs))
+    from glossrig.core.diagnose.frame_gains import gain_series
+
+    series = gain_series(fs)        # the frame gains' fit, shared by the shutter's and the drift's tests
+    add(shutter_cause(fs, series))
+    add(_drift_cause(fs, series))
     add(hot_pixel_cause(fd))
     from glossrig.core.diagnose.conditional import explain_away
 
@@ -372,8 +375,9 @@ def channel_response_cause(fs: FrameSet, common: CauseResult) -> CauseResult:
     return r
 
 
-def shutter_cause(fs: FrameSet) -> CauseResult:
-    """Exposure-time (shutter) error: the true exposure is ``t + delta`` for the nominal t."""
+def shutter_cause(fs: FrameSet, series=None) -> CauseResult:
+    """Exposure-time (shutter) error: the true exposure is ``t + delta`` for the nominal t. ``series``: the
+    frame gains' fit (:func:`.frame_gains.gain_series`) its test reads (None: fitted here)."""
     doc = ("Exposure-time (shutter) error: a focal-plane or leaf shutter opens and closes in a finite time, so "
            "the true exposure differs from the nominal one by a near-constant delta (ISO 516 defines the "
            "effective exposure time by the shutter's opening and closing; measured offsets are tens of "
@@ -381,12 +385,12 @@ def shutter_cause(fs: FrameSet) -> CauseResult:
            "shortest times and the same at every signal level and pixel, unlike a black offset (additive in DN, "
            "largest for dark pixels) or a non-linearity (a function of the DN level). Tested on the gains of the "
            "frames, the same for every LED, beside each LED's drift (glossrig.core.diagnose.frame_gains).")
-    from glossrig.core.diagnose.frame_gains import shutter_test
+    from glossrig.core.diagnose.frame_gains import gain_series, shutter_test
 
     r = _frame_cause(fs, "shutter_error", doc, "delta_s", "seconds added to every nominal exposure",
                      shutter_bounds(fs),
                      lambda d: (lambda i, M: _linear_pred(fs, i, M, gain=(fs.T[i] + d) / fs.T[i])))
-    r.test = shutter_test(fs)
+    r.test = shutter_test(gain_series(fs) if series is None else series)
     if r.test is not None:
         r.params["delta_s"], r.stderr["delta_s"] = r.test["delta_s"], r.test["stderr_s"]
         r.magnitude = r.test["delta_s"]
@@ -402,7 +406,9 @@ def shutter_bounds(fs: FrameSet) -> tuple[float, float]:
     return (-0.5 * tmin, 2.0 * tmin)
 
 
-def _drift_cause(fs: FrameSet) -> CauseResult:
+def _drift_cause(fs: FrameSet, series=None) -> CauseResult:
+    """LED drift, its held-out gain in frame space and its test on the frame gains' fit ``series``
+    (:func:`.frame_gains.gain_series`; None: fitted here)."""
     doc = ("LED drift (thesis 4.3.3, fig. 4.12): the LED's output changes slowly while its exposure sequence is "
            "taken (warm-up, temperature), a gain 1 + a tau with tau the frame's time from the middle of the "
            "sequence. Every pixel of a frame shares the gain, whatever its signal level: the residual follows "
@@ -431,9 +437,9 @@ def _drift_cause(fs: FrameSet) -> CauseResult:
         fold_est.append([float(a) for a in slopes])
         for i, a in enumerate(slopes):
             per_led.setdefault(fs.label[i], []).append(a)
-    from glossrig.core.diagnose.frame_gains import drift_test
+    from glossrig.core.diagnose.frame_gains import drift_test, gain_series
 
-    test = drift_test(fs)
+    test = drift_test(gain_series(fs) if series is None else series)
     led_slopes: dict[str, float]
     if test is None:
         led_slopes = {k: float(np.mean(v)) for k, v in per_led.items()}

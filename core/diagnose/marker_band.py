@@ -63,11 +63,11 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import chi2, norm
 
-from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD, CauseResult, consistent_folds
+from glossrig.core.diagnose.catalogue import GAIN_THRESHOLD, TEST_Z, CauseResult, consistent_folds
 from glossrig.core.diagnose.witness import BOUND_Z, brdf_cause, pair_rates, refute, single_leds, take_witness_test
 
 BAND_FLOOR_MM = 1.0   # the band's model error per offset component, mm (module docstring)
-BAND_Z = 4.0          # an LED's offset must lie as far from 0 as BAND_Z standard errors of one component:
+BAND_Z = TEST_Z       # an LED's offset must lie as far from 0 as BAND_Z standard errors of one component:
 #: sqrt of chi^2 (3 components) at the two-sided BAND_Z-sigma tail
 BAND_Z3 = math.sqrt(float(chi2.isf(2 * norm.sf(BAND_Z), 3)))
 FIT_CHI2 = 2.0        # the fit's robust normalised residual must stay below this (a moved LED's pattern)
