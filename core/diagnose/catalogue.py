@@ -19,6 +19,10 @@ squared normalised residual, :func:`chi2`):
   by their own test on the frames' gains instead (:attr:`CauseResult.test`,
   :mod:`.frame_gains`): the held-out gain of this space scores a slow trend against
   every pixel's photon noise and has no place for the LED's frame-to-frame jitter.
+  The other sensor causes (black offset, compression, channel response) keep the held-out
+  rule and must pass a check beside it (:attr:`CauseResult.check`,
+  :func:`.frame_gains.sensor_check`): their structure must survive a free gain per
+  frame, or that jitter could be taken for a compression.
 * ``pixels``: each LED's per-pixel rate against the 3x3 median of its own CFA
   colour (a smooth image). Folds: even / odd exposure index, the hot-pixel set found
   under every LED in the training exposures.
@@ -105,6 +109,10 @@ GAIN_THRESHOLD = 0.02      # relative held-out gain a BRDF-space cause must beat
 #: the level, in sigma (two-sided normal tail, 6.3e-5), of diagnose's chi^2 tests of a witness or a cause's own
 #: statistic: the marker band's LED offsets (:mod:`.marker_band`) and the frame gains (:mod:`.frame_gains`)
 TEST_Z = 4.0
+#: the level, in sigma (two-sided, 4.6 %), of a check a cause must pass beside its held-out gain
+#: (:attr:`CauseResult.check`; the sensor causes' check on the frame gains, :func:`.frame_gains.sensor_check`):
+#: a second test of a cause the held-out score already found significant
+CHECK_Z = 2.0
 PARAM_PENALTY = 0.002      # added per extra parameter
 #: (threshold, penalty per extra parameter) of each residual space, calibrated on null captures
 #: (validation/diagnose/blind_study.md). BRDF space: null gains up to 0.5 % (the pipeline's own
@@ -238,6 +246,10 @@ class CauseResult:
     #: with at least ``passed`` (led_drift: the trend of the frame gains, :func:`.frame_gains.drift_test`). It
     #: replaces the gain threshold and the fold rule; the held-out gains are still reported and rank the causes
     test: dict | None = None
+    #: a check the cause must pass beside its held-out gain (a dict with at least ``passed``): the sensor
+    #: causes' structure must survive a free gain per frame (:func:`.frame_gains.sensor_check`), or an LED's
+    #: frame-to-frame jitter could be taken for it
+    check: dict | None = None
 
     @property
     def kind(self) -> str:
@@ -271,7 +283,15 @@ class CauseResult:
         """Identifiable, not refuted, pooled held-out gain above the threshold, the fold rule of
         :func:`consistent_folds`, and - for a BRDF-space cause with a robust score - a lower median
         held-out relative residual than its base model's (module docstring). A cause with its own
-        :attr:`test`: identifiable, not refuted and that test passed."""
+        :attr:`test`: identifiable, not refuted and that test passed. Either way its :attr:`check`, where
+        it has one, must pass too."""
+        if self.check is not None and not self.check["passed"]:
+            return False
+        return self.significant_without_check
+
+    @property
+    def significant_without_check(self) -> bool:
+        """:attr:`significant` but for its :attr:`check` (the held-out rule, or the cause's own test)."""
         if self.test is not None:
             return bool(self.identifiable and self.refuted is None and self.test["passed"])
         rg = self.robust_gain
@@ -295,7 +315,7 @@ class CauseResult:
                 "identifiable": self.identifiable, "note": self.note, "profile": self.profile,
                 "blocked_by": self.blocked_by, "vs_material": self.vs_material, "eligible": self.eligible,
                 "refuted": self.refuted, "frame_signature": self.frame_signature, "robust": self.robust,
-                "test": self.test, "physics": self.doc}
+                "test": self.test, "check": self.check, "physics": self.doc}
 
 
 def chi2(res: np.ndarray, sigma: np.ndarray) -> float:

@@ -185,19 +185,28 @@ def _conditional(fs, sel_terms, sel_thetas, base_err, cand: CauseResult, folds) 
         errs.append(_held_out(fs, sel_terms + [t], th, fold))
         fits.append(th)
     gains = [(e0 - e1) / e0 if e0 > 0 else 0.0 for e0, e1 in zip(base_err, errs)]
-    test = None
-    if cand.test is not None:
-        # a cause with its own test takes it again on the frames with the selected terms undone, at their
-        # estimates on top of it (the mean of the folds' joint fits)
-        from glossrig.core.diagnose.frame_gains import TESTS, gain_series
+    from glossrig.core.diagnose.frame_gains import TESTS, gain_series, sensor_check
 
-        est = [np.mean([fit[k] for fit in fits], axis=0) for k in range(len(sel_terms))]
-        test = TESTS[cand.name](gain_series(fs, lambda i: dict(zip(
-            ("offset", "gain", "c"), _compose([t.kw(i, th) for t, th in zip(sel_terms, est)])))))
+    # the terms at their estimates on top of each other (the mean of the folds' joint fits)
+    est = [np.mean([fit[k] for fit in fits], axis=0) for k in range(len(sel_terms) + 1)]
+
+    def undone(terms, thetas):
+        return lambda i: dict(zip(("offset", "gain", "c"), _compose([t.kw(i, th) for t, th in zip(terms, thetas)])))
+    test = check = None
+    if cand.test is not None:
+        # a cause with its own test takes it again on the frames with the selected terms undone
+        test = TESTS[cand.name](gain_series(fs, undone(sel_terms, est[:-1])))
         if test is None:
             test = {"passed": False, "rule": "no frame-gain series to test"}
+    if cand.check is not None:
+        # a cause with a check on the frame gains takes it on top of the selected causes: the frames with
+        # their terms undone are the base, the frames with the candidate's undone as well the extension
+        check = sensor_check(gain_series(fs, undone(sel_terms, est[:-1])),
+                             gain_series(fs, undone(sel_terms + [t], est)), len(t.bounds))
+        if check is not None:
+            check["on"] = [s.name for s in sel_terms]
     r = CauseResult(cand.name, cand.space, "", {}, {}, float(np.mean(errs)), float(np.mean(base_err)), gains,
-                    cand.n_extra_params, test=test)
+                    cand.n_extra_params, test=test, check=check)
     return r, fits
 
 
@@ -205,11 +214,16 @@ def explain_away(fs: FrameSet, causes: list[CauseResult]) -> None:
     """Forward stepwise selection among the eligible frame-space causes (module docstring):
     blocks (``blocked_by``, a note) every cause the selected ones explain, and records each
     conditional test in the cause's ``params["conditional"]``. Changes ``causes`` in place."""
-    cands = [c for c in causes if c.space == "frames" and c.eligible and term(fs, c.name) is not None]
-    if len(cands) < 2:
+    # the candidates: every eligible frame-space cause, and those only their check on the frame gains stops
+    # (a sensor effect the check was taken beside - a black offset under a compression - can fail it alone:
+    # on top of the selected causes it is taken again); the first pick must be eligible
+    cands = [c for c in causes if c.space == "frames" and term(fs, c.name) is not None and c.blocked_by is None
+             and (c.eligible or c.significant_without_check)]
+    eligible = [c for c in cands if c.eligible]
+    if len(cands) < 2 or not eligible:
         return
     folds = fs.folds()
-    first = max(cands, key=lambda c: c.gain)
+    first = max(eligible, key=lambda c: c.gain)
     sel = [first]
     sel_terms = [term(fs, first.name)]
     sel_thetas = [[fold_start(first, f)] for f in range(len(folds))]
@@ -229,7 +243,9 @@ def explain_away(fs: FrameSet, causes: list[CauseResult]) -> None:
                         "fold), held-out gain over them"}
             if not r.significant:
                 c.blocked_by = on
-                why = (f"its test on top of it: {r.test['rule']}" if r.test is not None and "chi2" not in r.test else
+                why = (f"its check on the frame gains on top of it: chi^2 drop {r.check['chi2']:.1f} against "
+                       f"{r.check['bound']:.1f}" if r.check is not None and not r.check["passed"] else
+                       f"its test on top of it: {r.test['rule']}" if r.test is not None and "chi2" not in r.test else
                        f"its test on top of it: chi^2 {r.test['chi2']:.1f} against {r.test['bound']:.1f}"
                        if r.test is not None else
                        f"fitted on top of it the held-out gain is {r.gain:.4%} (folds "
@@ -239,6 +255,8 @@ def explain_away(fs: FrameSet, causes: list[CauseResult]) -> None:
         if not alive:
             return
         best, r, fits = max(alive, key=lambda x: x[1].gain)
+        if r.check is not None:
+            best.check = r.check        # its check on top of the selected causes is the one that counts
         best.note = (best.note + "; " if best.note else "") + (
             f"still passes its test on top of {on} (chi^2 {r.test['chi2']:.1f} against {r.test['bound']:.1f}): kept"
             if r.test is not None else

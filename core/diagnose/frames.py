@@ -302,6 +302,12 @@ def _frame_causes(fd: FrameData | FrameSet, log=None) -> list[CauseResult]:
     from glossrig.core.diagnose.frame_gains import gain_series
 
     series = gain_series(fs)        # the frame gains' fit, shared by the shutter's and the drift's tests
+    for r in out:                   # and the base of the check of the three sensor causes fitted so far
+        r.check = _sensor_check(fs, r, series)
+        if r.check is not None and not r.check["passed"] and r.significant_without_check:
+            r.note = (r.note + "; " if r.note else "") + (
+                f"its structure does not survive a free gain per frame (chi^2 drop {r.check['chi2']:.1f} against "
+                f"{r.check['bound']:.1f}): an LED's frame-to-frame jitter can make it")
     add(shutter_cause(fs, series))
     add(_drift_cause(fs, series))
     add(hot_pixel_cause(fd))
@@ -314,6 +320,21 @@ def _frame_causes(fd: FrameData | FrameSet, log=None) -> list[CauseResult]:
 
 
 CHANNEL_NAMES = ("R", "G", "B")
+
+
+def _sensor_check(fs: FrameSet, r: CauseResult, series) -> dict | None:
+    """The check of sensor cause ``r`` (black offset, compression, channel response) on the frame
+    gains (:func:`glossrig.core.diagnose.frame_gains.sensor_check`): its terms at its estimate on all
+    exposures (``params``) undone and the gains refitted, against ``series`` (the frames as they are)."""
+    from glossrig.core.diagnose.conditional import term
+    from glossrig.core.diagnose.frame_gains import gain_series, sensor_check
+
+    t = term(fs, r.name)
+    if t is None or series is None:
+        return None
+    p = r.params["b_dn" if r.name == "black_level_offset" else "c"]
+    theta = np.array([p[k] for k in CHANNEL_NAMES] if isinstance(p, dict) else [p], float)
+    return sensor_check(series, gain_series(fs, lambda i: t.kw(i, theta)), len(theta))
 
 
 def channel_response_cause(fs: FrameSet, common: CauseResult) -> CauseResult:

@@ -339,7 +339,9 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
           "exceeds its space's threshold plus a penalty per extra parameter ("
           + "; ".join(f"{k}: {t:.2%} + {p:.2%}" for k, (t, p) in THRESHOLDS.items())
           + "); led_drift and shutter_error are judged by their own test on the frames' gains instead (the "
-          "threshold column shows its chi^2 against its bound). Sensor-level (frames, pixels) causes are named "
+          "threshold column shows its chi^2 against its bound); black_level_offset, sensor_nonlinearity and "
+          "channel_response must also pass a check on the frames' gains (their structure survives a free gain per "
+          "frame: report.json's check). Sensor-level (frames, pixels) causes are named "
           "first: light and geometry causes cannot bend "
           "the raw exposure series.", "",
           "| cause | space | gain | threshold | eligible | params | note |", "|---|---|---|---|---|---|---|"]
