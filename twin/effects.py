@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from glossrig.core.errors import InputError
+from glossrig.core.led_fluctuations import LED_DRIFT_AMPLITUDE, LED_DRIFT_PERIOD_S, LED_JITTER
 
 
 @dataclass(frozen=True)
@@ -66,7 +67,8 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in [
            "A random fraction of pixels has a dark current of 200 e-/s instead of the nominal one."),
 ]}
 
-THESIS_FLUCTUATIONS = {"led_jitter": 0.005, "led_drift": 0.01}
+#: the rig's own fluctuations (:mod:`glossrig.core.led_fluctuations`, which diagnose expects of a healthy rig)
+THESIS_FLUCTUATIONS = {"led_jitter": LED_JITTER, "led_drift": LED_DRIFT_AMPLITUDE}
 HOT_PIXEL_RATE_E_S = 200.0
 EMISSION_TILT_DEG = 2.0
 
@@ -108,7 +110,7 @@ class EffectState:
     def __post_init__(self):
         rng = np.random.default_rng([self.seed, 7])
         n = len(self.led_ids)
-        self.detail["drift_period_s"] = dict(zip(self.led_ids, rng.uniform(1200, 3600, n).tolist()))
+        self.detail["drift_period_s"] = dict(zip(self.led_ids, rng.uniform(*LED_DRIFT_PERIOD_S, n).tolist()))
         self.detail["drift_phase"] = dict(zip(self.led_ids, rng.uniform(0, 2 * np.pi, n).tolist()))
         tilt_dir = rng.uniform(0, 2 * np.pi, n)
         self.detail["emission_tilt_dir"] = dict(zip(self.led_ids, tilt_dir.tolist()))
