@@ -37,8 +37,9 @@ most of it. Measured on the eight-LED blind study (validation/diagnose/blind_stu
 threshold of 0.13 % for eight slopes. And the frame-to-frame jitter of a real LED (0.5 %,
 the twin's ``led_jitter``) is structure that held-out score does not expect. On the gains the
 drift is a trend in a short series whose scatter the test measures: on synthetic stacks with a
-drift of 0.006 /min the statistic is 36-49 against a bound of 19.3 (two LEDs, six seeds), and with
-0.5 % jitter and no drift it stays at 0.8-3.8.
+drift of 0.006 /min the statistic of "no LED drifts at all" is 36-49 against a bound of 19.3 (two
+LEDs, six seeds), and with 0.5 % jitter and no drift it stays at 0.8-3.8 (measured before the rig's
+own drift joined the null, below, which lowers both).
 
 **The rig's own drift.** A healthy rig's LEDs drift too (thesis fig. 4.12; the pipeline's
 neighbour correction and patch normalisation are there to remove it): the twin simulates it by
@@ -49,10 +50,11 @@ the statistic of "no LED drifts" was 68.8 against a bound of 47.2, the slopes wi
 errors of the drift the twin recorded. So the test asks whether the LEDs drift *more than the
 rig's own*: the slopes are taken as drawn around zero with that RMS, which adds its square to
 each slope's variance (a random effect), and the statistic is chi^2(L) when they drift as a
-healthy rig does. On that capture it is 37.7; on the eight-LED blind study's drift trials
-(--ideal captures, drifts of 2.3-3.7 % amplitude) it stays at 56-95 against 32.9. What is lost:
-a drift no larger than the rig's own cannot be told from it (the two-LED blind study's drift
-trials, 6.7-18.0 against 19.3).
+healthy rig does. On that capture it is 37.6; on the rgl study's ten captures 10-38 against
+47.2 (validation/diagnose/rgl_study.md). On the eight-LED blind study's drift trials (--ideal
+captures, drifts of 2.3-3.7 % amplitude, the study's 3000 pixels per LED) it is 38-64 against
+32.9 (all three named, as before). What is lost: a drift a few times the rig's own on two LEDs
+(the two-LED blind study's drift trials: 2.8-10.5 against 19.3, where trial 25 was named before).
 
 **Shutter.** An exposure-time error delta is a frame gain too, ``1 + delta / t_e``, the same for
 every LED (it is the camera's), largest at the shortest exposures. Fitted alone, a trend in time
