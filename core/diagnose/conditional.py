@@ -97,12 +97,17 @@ def term(fs: FrameSet, name: str) -> Term | None:
     return None
 
 
-def fold_start(c: CauseResult, fold: int) -> np.ndarray:
-    """The cause's own estimate on training fold ``fold`` (its ``params["fold_estimates"]``)."""
-    e = c.params["fold_estimates"][fold]
+def theta(e) -> np.ndarray:
+    """A cause's estimate as its term's parameters: a value, a list (one per block) or a dict over the
+    colour channels (channel_response)."""
     if isinstance(e, dict):
         return np.array([e[k] for k in CHANNEL_NAMES], float)
     return np.atleast_1d(np.asarray(e, float))
+
+
+def fold_start(c: CauseResult, fold: int) -> np.ndarray:
+    """The cause's own estimate on training fold ``fold`` (its ``params["fold_estimates"]``)."""
+    return theta(c.params["fold_estimates"][fold])
 
 
 def _compose(parts):
@@ -218,7 +223,7 @@ def explain_away(fs: FrameSet, causes: list[CauseResult]) -> None:
     # (a sensor effect the check was taken beside - a black offset under a compression - can fail it alone:
     # on top of the selected causes it is taken again); the first pick must be eligible
     cands = [c for c in causes if c.space == "frames" and term(fs, c.name) is not None and c.blocked_by is None
-             and (c.eligible or c.significant_without_check)]
+             and c.significant_without_check]
     eligible = [c for c in cands if c.eligible]
     if len(cands) < 2 or not eligible:
         return

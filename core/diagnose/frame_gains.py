@@ -44,7 +44,7 @@ own drift joined the null, below, which lowers both).
 **The rig's own drift.** A healthy rig's LEDs drift too (thesis fig. 4.12; the pipeline's
 neighbour correction and patch normalisation are there to remove it): the twin simulates it by
 default, 1 % over periods of 20-60 min (:mod:`glossrig.core.led_fluctuations`), an RMS slope of
-0.0013 /min. The photon noise and jitter alone do not make it a false alarm only on few LEDs: on
+0.0013 /min. On a few LEDs it is lost in the photon noise and the jitter; on many it is not: on
 the rgl study's anisotropic GGX capture (16 LED sequences, thesis fluctuations, no other effect)
 the statistic of "no LED drifts" was 68.8 against a bound of 47.2, the slopes within 2.6 standard
 errors of the drift the twin recorded. So the test asks whether the LEDs drift *more than the
@@ -71,7 +71,7 @@ per-channel response are scored by the held-out gain of :mod:`.frames`, whose ba
 frame gains; an LED's frame-to-frame jitter is structure it does not expect, and a compression
 can take part of it up. Measured on the synthetic stacks of tests/test_diagnose.py (two LEDs,
 rates up to 2e6 DN/s, no sensor effect): with 0.5 % jitter ``sensor_nonlinearity`` was named on
-1 of 52 seeds (300-351), with 1 % on 4 of 40 (400-439). A gain per frame cannot mimic what these
+1 of 52 seeds (300-351), with 1 % on 4 of 40 (400-439), before this check; with it on none. A gain per frame cannot mimic what these
 causes do - an offset is added, a compression bends the bright pixels of a frame more than its
 dark ones - so each must also pass a check on the gains model: undo the cause's terms at its own
 estimate (:func:`linearised`), refit the gains, and compare the drop of the weighted misfit
@@ -81,8 +81,8 @@ The estimate comes from the other model, so the drop is at most the likelihood r
 over the parameters, chi^2(k) when there is no effect: the check is conservative. It is a second
 test of a cause the held-out gain already found, at the 2-sigma level (:data:`CHECK_TAIL`): on those
 stacks the five jitter-made namings dropped the misfit by -19 to -8 (the compression made the gains
-model worse), a compression of 0.01 - the blind study's smallest - by 9-25 (four seeds, no jitter),
-where a 4-sigma bound (16) would have lost two of four.
+model worse), a compression of 0.01 - the blind study's smallest - by 9-25 (four seeds, no jitter)
+and 15-32 (0.5 % jitter), where a 4-sigma bound (16) would have lost one of each four.
 """
 from __future__ import annotations
 
@@ -135,15 +135,15 @@ def frame_gains(Z, T, W, M, iters: int = 20) -> tuple[np.ndarray, np.ndarray, np
 
 def gains_misfit(Z, T, W, M, g, seen) -> tuple[float, int]:
     """The weighted sum of squares of the frames about ``rate_p t_e g_e`` (the rates refitted at the
-    gains ``g`` of :func:`frame_gains` over the frames ``seen``) and its degrees of freedom: the
-    observations less one rate per pixel and the gains (less the common factor)."""
+    gains ``g`` of :func:`frame_gains` over the frames ``seen``, :func:`.frames._fit_rates`) and its
+    degrees of freedom: the observations less one rate per pixel and the gains (less the common factor)."""
+    from glossrig.core.diagnose.frames import _fit_rates
+
     WM = np.where(M, W, 0.0)[seen]
-    G = T[seen] * g[:, None]
-    c = np.sum(WM * G * G, axis=0)
-    keep = c > 0
-    r = np.where(keep, np.sum(WM * G * Z[seen], axis=0) / np.where(keep, c, 1.0), 0.0)
-    n = int(np.sum(WM > 0))
-    return float(np.sum(WM * (Z[seen] - r[None, :] * G) ** 2)), n - int(keep.sum()) - (len(g) - 1)
+    Z, G = Z[seen], T[seen] * g[:, None]
+    r = _fit_rates(Z, T[seen], None, None, gain=g[:, None], WM=WM)
+    n_rates = int(np.sum(np.any(WM > 0, axis=0)))
+    return float(np.sum(WM * (Z - r[None, :] * G) ** 2)), int(np.sum(WM > 0)) - n_rates - (len(g) - 1)
 
 
 def linearised(fs, i: int, offset=0.0, gain=None, c=0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -326,15 +326,14 @@ def _sensor_check(fs: FrameSet, r: CauseResult, series) -> dict | None:
     """The check of sensor cause ``r`` (black offset, compression, channel response) on the frame
     gains (:func:`glossrig.core.diagnose.frame_gains.sensor_check`): its terms at its estimate on all
     exposures (``params``) undone and the gains refitted, against ``series`` (the frames as they are)."""
-    from glossrig.core.diagnose.conditional import term
+    from glossrig.core.diagnose.conditional import term, theta
     from glossrig.core.diagnose.frame_gains import gain_series, sensor_check
 
     t = term(fs, r.name)
     if t is None or series is None:
         return None
-    p = r.params["b_dn" if r.name == "black_level_offset" else "c"]
-    theta = np.array([p[k] for k in CHANNEL_NAMES] if isinstance(p, dict) else [p], float)
-    return sensor_check(series, gain_series(fs, lambda i: t.kw(i, theta)), len(theta))
+    th = theta(r.params["b_dn" if r.name == "black_level_offset" else "c"])
+    return sensor_check(series, gain_series(fs, lambda i: t.kw(i, th)), len(th))
 
 
 def channel_response_cause(fs: FrameSet, common: CauseResult) -> CauseResult:
