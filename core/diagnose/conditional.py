@@ -68,9 +68,11 @@ class Term:
     block, each block touching the pixels of its scope - (LED index, pixel columns or None for
     all) pairs: per-pixel rates are independent, so the training cost of the other pixels does
     not depend on the block; ``kw(i, theta)`` the term's part of :func:`.frames._linear_pred`'s
-    offset / gain / c for LED ``i``."""
+    offset / gain / c for LED ``i``; ``param`` the key of the cause's ``params`` that holds its
+    estimate (:func:`theta` turns it into the term's parameters)."""
 
     name: str
+    param: str
     bounds: list[tuple[float, float]]
     scopes: list[list[tuple[int, np.ndarray | None]]]
     kw: Callable[[int, np.ndarray], dict]
@@ -82,17 +84,18 @@ def term(fs: FrameSet, name: str) -> Term | None:
     n = len(fs.Z)
     every: list[list[tuple[int, np.ndarray | None]]] = [[(i, None) for i in range(n)]]
     if name == "black_level_offset":
-        return Term(name, [BOUNDS[name]], every, lambda i, th: {"offset": th[0]})
+        return Term(name, "b_dn", [BOUNDS[name]], every, lambda i, th: {"offset": th[0]})
     if name == "sensor_nonlinearity":
-        return Term(name, [BOUNDS[name]], every, lambda i, th: {"c": th[0]})
+        return Term(name, "c", [BOUNDS[name]], every, lambda i, th: {"c": th[0]})
     if name == "shutter_error":
-        return Term(name, [shutter_bounds(fs)], every, lambda i, th: {"gain": (fs.T[i] + th[0]) / fs.T[i]})
+        return Term(name, "delta_s", [shutter_bounds(fs)], every,
+                    lambda i, th: {"gain": (fs.T[i] + th[0]) / fs.T[i]})
     if name == "channel_response":
         per_colour: list[list[tuple[int, np.ndarray | None]]] = [
             [(i, np.flatnonzero(fs.colour[i] == k)) for i in range(n)] for k in range(3)]
-        return Term(name, [BOUNDS[name]] * 3, per_colour, lambda i, th: {"c": th[fs.colour[i]]})
+        return Term(name, "c", [BOUNDS[name]] * 3, per_colour, lambda i, th: {"c": th[fs.colour[i]]})
     if name == "led_drift":
-        return Term(name, [BOUNDS[name]] * n, [[(i, None)] for i in range(n)],
+        return Term(name, "gain_slope_per_min", [BOUNDS[name]] * n, [[(i, None)] for i in range(n)],
                     lambda i, th: {"gain": 1 + th[i] * fs.tau[i]}, grid_n=11)
     return None
 

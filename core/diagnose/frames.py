@@ -332,7 +332,7 @@ def _sensor_check(fs: FrameSet, r: CauseResult, series) -> dict | None:
     t = term(fs, r.name)
     if t is None or series is None:
         return None
-    th = theta(r.params["b_dn" if r.name == "black_level_offset" else "c"])
+    th = theta(r.params[t.param])
     return sensor_check(series, gain_series(fs, lambda i: t.kw(i, th)), len(th))
 
 
