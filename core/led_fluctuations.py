@@ -4,10 +4,15 @@ The thesis shows the LEDs' output changing fast from image to image (high-freque
 fluctuation) and slowly over tens of minutes (low-frequency fluctuation); the pipeline is built
 to remove both - neighbour correction within an exposure sequence (eq. 4.32-4.38) and patch
 normalisation between images (eq. 4.45-4.50). Fig. 4.12 gives no numbers to read; these are the
-magnitudes the project takes for it, in one place: the twin simulates them by default
-(:data:`glossrig.twin.effects.THESIS_FLUCTUATIONS`), and diagnose expects them of a healthy rig
-(an LED drift is named only where it exceeds :func:`drift_slope_rms_per_min`,
-:func:`glossrig.core.diagnose.frame_gains.drift_test`).
+magnitudes the project takes for it. They belong to the rig (its LEDs, their driver, the room): the
+rig file states them in ``[leds]`` (``jitter``, ``drift_amplitude``, ``drift_period_s``;
+:class:`glossrig.core.rig.Lighting`), and these figures are what a rig file without them gets -
+the thesis rig's file states the same. The twin simulates the rig's figures by default
+(:func:`glossrig.twin.effects.rig_fluctuations`), and diagnose expects them of a healthy rig (an
+LED drift is named only where it exceeds the rig's :func:`drift_slope_rms_per_min`,
+:func:`glossrig.core.diagnose.frame_gains.drift_test`). A rig whose LEDs are known to drift more
+(or less) when healthy - measured, for example, from repeated white-patch images - should say so
+in its file.
 """
 from __future__ import annotations
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from glossrig.core import led_fluctuations
 from glossrig.core.errors import InputError
 from glossrig.core.resources import resolve_input, scenes_dir
 from glossrig.core.toml_input import check_number, read_toml
@@ -137,6 +138,18 @@ class Lighting:
     row_offset: float
     radiant_intensity_W_sr: float        # twin's and design tools' radiometric scale
     housing_radius: float = 4.0          # LED housing (twin's shadows)
+    #: the LEDs' own fluctuations (thesis 4.3.3, fig. 4.12; :mod:`glossrig.core.led_fluctuations`, whose
+    #: figures a rig file without these keys gets): relative RMS from frame to frame, the slow drift's
+    #: relative amplitude and the range its period (s) is drawn from. The twin simulates them unless
+    #: --ideal; diagnose names an LED drift only where it exceeds them (:meth:`drift_slope_rms_per_min`)
+    jitter: float = led_fluctuations.LED_JITTER
+    drift_amplitude: float = led_fluctuations.LED_DRIFT_AMPLITUDE
+    drift_period_s: tuple[float, float] = led_fluctuations.LED_DRIFT_PERIOD_S
+
+    def drift_slope_rms_per_min(self) -> float:
+        """RMS relative slope (1/min) of a healthy LED's drift
+        (:func:`glossrig.core.led_fluctuations.drift_slope_rms_per_min`)."""
+        return led_fluctuations.drift_slope_rms_per_min(self.drift_amplitude, self.drift_period_s)
 
 
 @dataclass(frozen=True)
@@ -327,13 +340,27 @@ def _cylinder_markers(raw: dict, p: str) -> CylinderMarkers:
                            paper_thickness=_num(cm, "paper_thickness", p, 0, 10, w, default=0.0))
 
 
+def _drift_period(sec: dict, p: str) -> tuple[float, float]:
+    """``[leds] drift_period_s = [low, high]``: the range (s) an LED's drift period is drawn from."""
+    if "drift_period_s" not in sec:
+        return led_fluctuations.LED_DRIFT_PERIOD_S
+    lo, hi = _nums(sec, "drift_period_s", p, 2, "leds.", "[low, high] in seconds", lo=1.0, hi=1e6)
+    if hi < lo:
+        raise InputError(f"leds.drift_period_s must be [low, high] with low <= high, got {[lo, hi]}", path=p)
+    return (lo, hi)
+
+
 def _leds(raw: dict, p: str, radius: float) -> tuple[Lighting, tuple[Led, ...]]:
     sec = _section(raw, "leds", p)
     lighting = Lighting(distance_from_axis=_num(sec, "distance_from_axis", p, radius + 1, 5000, "leds."),
                         row_offset=_num(sec, "row_offset", p, 0, 500, "leds."),
                         radiant_intensity_W_sr=_num(sec, "radiant_intensity_W_sr", p, 0, lo_open=True,
                                                     where="leds."),
-                        housing_radius=_num(sec, "housing_radius", p, 0, 100, "leds.", default=4.0, lo_open=True))
+                        housing_radius=_num(sec, "housing_radius", p, 0, 100, "leds.", default=4.0, lo_open=True),
+                        jitter=_num(sec, "jitter", p, 0, 0.2, "leds.", default=led_fluctuations.LED_JITTER),
+                        drift_amplitude=_num(sec, "drift_amplitude", p, 0, 0.5, "leds.",
+                                             default=led_fluctuations.LED_DRIFT_AMPLITUDE),
+                        drift_period_s=_drift_period(sec, p))
     leds = []
     for i, e in enumerate(_get(sec, "table", p, list, "leds.")):
         w = f"leds.table[{i}]."

@@ -173,7 +173,7 @@ def _check_sample_label(plan: CapturePlan, material) -> None:
 def make_twin_backends(plan: CapturePlan) -> tuple[TwinLights, TwinCamera, TwinOperator]:
     """One :class:`VirtualRig` from the plan's rig and ``[twin]`` table, behind the three adapters."""
     from glossrig.core.models.materials import parse_material
-    from glossrig.twin.effects import THESIS_FLUCTUATIONS, parse_effects
+    from glossrig.twin.effects import parse_effects, rig_fluctuations
     from glossrig.twin.virtual_rig import VirtualRig
 
     if plan.checkerboard_views:
@@ -188,7 +188,7 @@ def make_twin_backends(plan: CapturePlan) -> tuple[TwinLights, TwinCamera, TwinO
                          "exposures writes it)", path=plan.path)
     try:
         material = parse_material(str(t["material"]))
-        effects = {} if t.get("ideal", False) else dict(THESIS_FLUCTUATIONS)
+        effects = {} if t.get("ideal", False) else rig_fluctuations(plan.rig)
         effects.update(parse_effects(t.get("effects")))
     except InputError as e:
         raise InputError(f"[twin]: {e}", path=plan.path) from None

@@ -102,6 +102,21 @@ def test_drift_of_one_led_on_an_ideal_capture_is_found_on_that_led():
     assert abs(d.params["gain_slope_per_min"]["9"]) < 4 * d.stderr["gain_slope_per_min"]["9"]
 
 
+def test_a_rig_that_states_a_larger_own_drift_is_held_to_it():
+    """The drift test's null is the capture's rig's own drift (``FrameData.drift_rms_per_min``, which
+    load_frames reads from the capture's rig file, ``[leds]``): the same 0.012 / min drift on LED 6 as
+    above, on a rig whose healthy LEDs drift by 0.02 / min RMS, has a non-centrality of
+    0.012^2 / (0.00107^2 + 0.02^2) = 0.36 - indistinguishable from the rig's own, so not named - while
+    the report states the baseline it was judged against."""
+    fd = synthetic_frames(41, drift=[0.012, 0.0])
+    fd.drift_rms_per_min = 0.02
+    causes = {c.name: c for c in frame_causes(fd)}
+    d = causes["led_drift"]
+    assert d.test["baseline_per_min"] == 0.02
+    assert not d.significant, d.test
+    assert abs(d.params["gain_slope_per_min"]["6"] - 0.012) < 4 * d.stderr["gain_slope_per_min"]["6"]
+
+
 @pytest.mark.parametrize("seed", [51, 52])
 def test_a_shutter_error_is_not_taken_for_a_drift(seed):
     """A shutter error of 2e-5 - 6e-5 s (8 - 24 % of the shortest exposure) bends every LED's gains alike,

@@ -42,7 +42,8 @@ def test_every_section_is_exposed_as_attributes():
     assert rig.cylinder_markers == CylinderMarkers(side=7.9, count=3, centre_height=68.0, band_bottom=58.0,
                                                    band_top=78.0, paper_thickness=0.1)
     assert rig.lighting == Lighting(distance_from_axis=300.0, row_offset=13.5, radiant_intensity_W_sr=0.12,
-                                    housing_radius=4.0)
+                                    housing_radius=4.0, jitter=0.005, drift_amplitude=0.01,
+                                    drift_period_s=(1200.0, 3600.0))
     assert len(rig.leds) == 16 and (rig.leds[1].id, rig.leds[1].channel, rig.leds[1].gpio) == (2, 2, 27)
     assert rig.camera.image_px == (6032, 4032) and rig.camera.lens == "105 mm" and rig.camera.bits == 14
     assert rig.sensor == Sensor(electrons_per_dn_iso100=2.2, read_noise_e=3.0, dark_current_e_s=0.05,
@@ -68,6 +69,28 @@ def test_optional_keys_and_sections_take_their_defaults(tmp_path):
     assert rig.capture.overhead_s_per_shot == 7.5
 
 
+def test_the_leds_own_fluctuations_are_the_rig_files(tmp_path):
+    """``[leds] jitter / drift_amplitude / drift_period_s``: a rig file states its LEDs' own fluctuations
+    (the twin simulates them, diagnose takes them as a healthy rig's); without them, the project's
+    figures (glossrig.core.led_fluctuations). The RMS drift slope follows from them: amplitude x 2 pi x
+    sqrt(1 / (2 P_lo P_hi)), P in minutes - 0.02 x 2 pi x sqrt(1 / (2 x 10 x 10)) = 0.00889 / min."""
+    from glossrig.core import led_fluctuations as lf
+
+    text = TEXT
+    for key in ("jitter", "drift_amplitude", "drift_period_s"):
+        text = with_value(text, "leds", key, None)
+    (tmp_path / "bare.toml").write_text(text)
+    bare = load_rig(tmp_path / "bare.toml")
+    assert (bare.lighting.jitter, bare.lighting.drift_amplitude, bare.lighting.drift_period_s) == (
+        lf.LED_JITTER, lf.LED_DRIFT_AMPLITUDE, lf.LED_DRIFT_PERIOD_S)
+    assert bare.lighting.drift_slope_rms_per_min() == lf.drift_slope_rms_per_min()
+    text = with_value(with_value(TEXT, "leds", "drift_amplitude", "0.02"), "leds", "drift_period_s", "[600.0, 600.0]")
+    (tmp_path / "own.toml").write_text(with_value(text, "leds", "jitter", "0.01"))
+    own = load_rig(tmp_path / "own.toml").lighting
+    assert (own.jitter, own.drift_amplitude, own.drift_period_s) == (0.01, 0.02, (600.0, 600.0))
+    assert own.drift_slope_rms_per_min() == pytest.approx(0.02 * 2 * math.pi * math.sqrt(1 / 200), rel=1e-12)
+
+
 BAD = [
     ("cylinder", "radius_with_sample", "0.5", r"cylinder\.radius_with_sample must be >= 1 and <= 500, got 0\.5"),
     ("cylinder", "top", '"high"', r"cylinder\.top must be a number, got 'high'"),
@@ -76,6 +99,9 @@ BAD = [
     ("cylinder_markers", "count", "2.5", r"cylinder_markers\.count must be an integer >= 1"),
     ("leds", "radiant_intensity_W_sr", "0.0", r"leds\.radiant_intensity_W_sr must be > 0, got 0\.0"),
     ("leds", "row_offset", "inf", r"leds\.row_offset must be a number, got inf"),
+    ("leds", "jitter", "0.5", r"leds\.jitter must be >= 0 and <= 0\.2, got 0\.5"),
+    ("leds", "drift_period_s", "[3600.0, 1200.0]", r"leds\.drift_period_s must be \[low, high\] with low <= high"),
+    ("leds", "drift_period_s", "[1200.0]", r"leds\.drift_period_s must hold \[low, high\] in seconds"),
     ("camera", "bits", "20", r"camera\.bits must be >= 8 and <= 16, got 20"),
     ("camera", "image_px", "[6032]", r"camera\.image_px must hold 2 values"),
     ("sensor", "full_well_e", "-1.0", r"sensor\.full_well_e must be > 0, got -1\.0"),

@@ -161,7 +161,8 @@ def test_resume_refuses_a_capture_whose_material_file_was_edited(tmp_path):
 
     bsdf = tmp_path / "m.bsdf"
     bsdf.write_bytes(b"first version")
-    opts = sample_options(load_rig(RIG), f"measured:{bsdf}", "6", [0.0], 1, 0.05, 3, twin_effects(None, True), 1)
+    rig = load_rig(RIG)
+    opts = sample_options(rig, f"measured:{bsdf}", "6", [0.0], 1, 0.05, 3, twin_effects(rig, None, True), 1)
     out = tmp_path / "cap"
     out.mkdir()
     Manifest(out, "rig.toml", "m", complete=False, meta={OPTIONS_KEY: opts}).save()

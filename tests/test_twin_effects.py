@@ -113,3 +113,28 @@ def test_sensor_level_effects(rig):
     assert mask.mean() == pytest.approx(0.01, rel=0.05)
     hot = e.apply_dn(np.full((1000, 1000), 600.0), np.full((1000, 1000), 600.0), white, 2.0, 0.5, mask)
     assert np.allclose(hot[mask], 600 + 200 * 2.0 / 0.5) and np.allclose(hot[~mask], 600)
+
+
+def test_the_twin_simulates_the_rig_files_own_fluctuations(rig, tmp_path):
+    """A capture is simulated with the LED fluctuations its rig file states (``[leds] jitter``,
+    ``drift_amplitude``, ``drift_period_s``), not with constants of the code: the effects glossrig
+    simulate applies (unless --ideal) and the drift periods the twin draws follow the file."""
+    from glossrig.core.rig import load_rig
+    from glossrig.twin.effects import rig_fluctuations
+    from glossrig.twin.simulate import twin_effects
+
+    assert twin_effects(rig, None) == rig_fluctuations(rig) == {
+        "led_jitter": rig.lighting.jitter, "led_drift": rig.lighting.drift_amplitude}
+    assert twin_effects(rig, None, ideal=True) == {}
+    from pathlib import Path
+
+    text = Path(rig.path).read_text()
+    assert "jitter = 0.005 " in text and "drift_period_s = [1200.0, 3600.0]" in text
+    text = (text.replace("jitter = 0.005 ", "jitter = 0.012 ").replace("drift_amplitude = 0.01 ", "drift_amplitude = 0.03 ")
+            .replace("drift_period_s = [1200.0, 3600.0]", "drift_period_s = [300.0, 400.0]"))
+    (tmp_path / "rig.toml").write_text(text)
+    own = load_rig(tmp_path / "rig.toml")
+    assert twin_effects(own, "led_jitter=0.002") == {"led_jitter": 0.002, "led_drift": 0.03}
+    vr = vrig(own, twin_effects(own, None))
+    periods = list(vr.effects.detail["drift_period_s"].values())
+    assert len(periods) == 16 and all(300.0 <= p <= 400.0 for p in periods), periods

@@ -8,9 +8,11 @@ per-LED or per-pixel detail (directions, phases, which pixels), that detail is
 drawn from the capture's seed and recorded in the truth as well.
 
 The rig's own baseline LED fluctuations (thesis 4.3.3, fig. 4.12) are the same
-two effects ``led_jitter`` and ``led_drift`` at their thesis-like magnitudes
-(:data:`THESIS_FLUCTUATIONS`); ``glossrig simulate`` applies them unless
-``--ideal`` is given, and ``--effects`` overrides either.
+two effects ``led_jitter`` and ``led_drift`` at the magnitudes its rig file states
+(:func:`rig_fluctuations`; ``[leds]`` of the rig file, :class:`glossrig.core.rig.Lighting`);
+``glossrig simulate`` applies them unless ``--ideal`` is given, and ``--effects``
+overrides either. The drift's period is drawn per LED in the rig file's
+``drift_period_s`` range whatever the drift's amplitude.
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from glossrig.core.errors import InputError
-from glossrig.core.led_fluctuations import LED_DRIFT_AMPLITUDE, LED_DRIFT_PERIOD_S, LED_JITTER
+from glossrig.core.led_fluctuations import LED_DRIFT_PERIOD_S
 
 
 @dataclass(frozen=True)
@@ -67,8 +69,14 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in [
            "A random fraction of pixels has a dark current of 200 e-/s instead of the nominal one."),
 ]}
 
-#: the rig's own fluctuations (:mod:`glossrig.core.led_fluctuations`, which diagnose expects of a healthy rig)
-THESIS_FLUCTUATIONS = {"led_jitter": LED_JITTER, "led_drift": LED_DRIFT_AMPLITUDE}
+
+
+def rig_fluctuations(rig) -> dict[str, float]:
+    """The rig's own LED fluctuations as twin effects: ``[leds] jitter`` and ``drift_amplitude`` of its
+    file (:class:`glossrig.core.rig.Lighting`; diagnose expects the same of a healthy rig)."""
+    return {"led_jitter": rig.lighting.jitter, "led_drift": rig.lighting.drift_amplitude}
+
+
 HOT_PIXEL_RATE_E_S = 200.0
 EMISSION_TILT_DEG = 2.0
 
@@ -106,11 +114,13 @@ class EffectState:
     seed: int
     led_ids: list[int]
     detail: dict = field(default_factory=dict)
+    #: the range (s) each LED's drift period is drawn from: the rig file's ``[leds] drift_period_s``
+    drift_period_s: tuple[float, float] = LED_DRIFT_PERIOD_S
 
     def __post_init__(self):
         rng = np.random.default_rng([self.seed, 7])
         n = len(self.led_ids)
-        self.detail["drift_period_s"] = dict(zip(self.led_ids, rng.uniform(*LED_DRIFT_PERIOD_S, n).tolist()))
+        self.detail["drift_period_s"] = dict(zip(self.led_ids, rng.uniform(*self.drift_period_s, n).tolist()))
         self.detail["drift_phase"] = dict(zip(self.led_ids, rng.uniform(0, 2 * np.pi, n).tolist()))
         tilt_dir = rng.uniform(0, 2 * np.pi, n)
         self.detail["emission_tilt_dir"] = dict(zip(self.led_ids, tilt_dir.tolist()))

@@ -38,7 +38,7 @@ from glossrig.core.models.materials import material_sha256, parse_material
 from glossrig.core.progress import progress_enabled
 from glossrig.core.rig import load_rig
 
-from .effects import THESIS_FLUCTUATIONS, parse_effects
+from .effects import parse_effects, rig_fluctuations
 from .render import DEFAULT_SPP
 
 
@@ -95,10 +95,10 @@ def capture_identity(options: dict) -> dict:
     return {**options, "material": spec.split(":", 1)[0] if spec.startswith(("measured:", "mitsuba:")) else spec}
 
 
-def twin_effects(effects_text: str | None, ideal: bool = False) -> dict:
-    """The non-idealities a capture is simulated with: the rig's own LED fluctuations
-    (unless ``ideal``) updated by ``--effects`` (``name=value,...``)."""
-    effects = {} if ideal else dict(THESIS_FLUCTUATIONS)
+def twin_effects(rig, effects_text: str | None, ideal: bool = False) -> dict:
+    """The non-idealities a capture of ``rig`` is simulated with: the rig's own LED fluctuations
+    (unless ``ideal``; :func:`.effects.rig_fluctuations`) updated by ``--effects`` (``name=value,...``)."""
+    effects = {} if ideal else rig_fluctuations(rig)
     effects.update(parse_effects(effects_text))
     return effects
 
@@ -193,7 +193,7 @@ def simulate(rig_path, material_spec: str, leds_spec, rotations, repeats: int, s
         raise InputError(f"--scale must lie in [0.01, 1], got {scale}")
     if int(seed) < 0:
         raise InputError(f"--seed must be >= 0, got {seed}")
-    effects = twin_effects(effects_text, ideal)
+    effects = twin_effects(rig, effects_text, ideal)
     out = Path(out)
     if target == "checkerboard":
         if views < 1:

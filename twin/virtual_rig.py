@@ -55,7 +55,8 @@ class VirtualRig:
                              "sample turned about its normal gives the same images, so the effect would "
                              "not be in the capture")
         self.rig, self.material, self.scale, self.seed, self.spp = rig, material, scale, seed, spp
-        self.effects = EffectState(dict(effects or {}), seed, rig.led_ids())
+        self.effects = EffectState(dict(effects or {}), seed, rig.led_ids(),
+                                   drift_period_s=rig.lighting.drift_period_s)
         self.sensor = SensorModel.from_rig(rig)
         self.lens = LensMap.build(rig.camera, scale)
         self.camera_R, self.camera_t = rig.camera.pose()

@@ -261,8 +261,9 @@ def simulate_options(*args, rig: Path = RIG, extra=()) -> dict:
     a = p.parse_args(argv)
     if a.target == "checkerboard":
         return checkerboard_options(load_rig(a.rig), a.scale, a.seed, a.views, spp_of(a))
-    return sample_options(load_rig(a.rig), a.material, a.leds, parse_rotations(a.rotations), a.repeats, a.scale, a.seed,
-                          twin_effects(a.effects, a.ideal), spp_of(a))
+    rig_ = load_rig(a.rig)
+    return sample_options(rig_, a.material, a.leds, parse_rotations(a.rotations), a.repeats, a.scale, a.seed,
+                          twin_effects(rig_, a.effects, a.ideal), spp_of(a))
 
 
 def capture_argv(material: str, scale: float, seed: int, rotations: str = "0", repeats: int = 1,

@@ -55,11 +55,11 @@ def simulate_sequences(rig, material_spec: str, leds, rotation: float, repeats: 
     from glossrig.core.radiometry.hdr import stack_frames
     from glossrig.core.models.materials import parse_material
     from glossrig.core.calibration.raw import read_raw
-    from glossrig.twin.effects import THESIS_FLUCTUATIONS
+    from glossrig.twin.effects import rig_fluctuations
     from glossrig.twin.sensor import frame_rng
     from glossrig.twin.virtual_rig import VirtualRig
 
-    vr = VirtualRig(rig, parse_material(material_spec), scale=scale, seed=seed, effects=dict(THESIS_FLUCTUATIONS))
+    vr = VirtualRig(rig, parse_material(material_spec), scale=scale, seed=seed, effects=rig_fluctuations(rig))
     vr.set_rotation(rotation)
     times = rig.exposure_times_s
     iso, ap = rig.sequence_iso, rig.sequence_aperture

@@ -23,6 +23,7 @@ import pandas as pd
 from glossrig.core.capture import load_manifest
 from glossrig.core.errors import InputError
 from glossrig.core.extraction.extract import Measured, check_compatible, diffuse_normalize, measure_capture, measure_pair
+from glossrig.core.led_fluctuations import drift_slope_rms_per_min
 from glossrig.core.rig import load_rig
 from glossrig.core.samples import LUMINANCE_WEIGHTS
 
@@ -73,6 +74,9 @@ class FrameData:
     white: float
     e_per_dn: float         # conversion gain at the sequence ISO (e-/DN)
     read_dn: float          # read noise (DN RMS), quantisation included
+    #: RMS relative slope (1/min) of a healthy LED's drift: the capture's rig file's ``[leds]`` figures
+    #: (:meth:`glossrig.core.rig.Lighting.drift_slope_rms_per_min`); the LED-drift test's null
+    drift_rms_per_min: float = drift_slope_rms_per_min()
 
     def variance(self, signal_dn) -> np.ndarray:
         """Temporal variance of a frame's DN at an expected signal above black (EMVA 1288)."""
@@ -264,4 +268,4 @@ def load_frames(sample_dir, measured: Measured) -> FrameData:
         raise InputError("no single-LED sequence frames with an ISO in the manifest", path=man.path)
     k = sen.electrons_per_dn_iso100 * 100.0 / float(iso)
     read = float(np.sqrt((sen.read_noise_e / k) ** 2 + 1.0 / 12.0))
-    return FrameData(leds, float(white), k, read)
+    return FrameData(leds, float(white), k, read, rig.lighting.drift_slope_rms_per_min())

@@ -43,8 +43,8 @@ own drift joined the null, below, which lowers both).
 
 **The rig's own drift.** A healthy rig's LEDs drift too (thesis fig. 4.12; the pipeline's
 neighbour correction and patch normalisation are there to remove it): the twin simulates it by
-default, 1 % over periods of 20-60 min (:mod:`glossrig.core.led_fluctuations`), an RMS slope of
-0.0013 /min. On a few LEDs it is lost in the photon noise and the jitter; on many it is not: on
+default, 1 % over periods of 20-60 min (the rig file's ``[leds]`` figures, :mod:`glossrig.core.led_fluctuations`),
+an RMS slope of 0.0013 /min. On a few LEDs it is lost in the photon noise and the jitter; on many it is not: on
 the rgl study's anisotropic GGX capture (16 LED sequences, thesis fluctuations, no other effect)
 the statistic of "no LED drifts" was 68.8 against a bound of 47.2, the slopes within 2.6 standard
 errors of the drift the twin recorded. So the test asks whether the LEDs drift *more than the
@@ -213,6 +213,9 @@ class GainSeries:
     #: the LEDs) and its degrees of freedom: what :func:`sensor_check` compares
     chi2: float = float("nan")
     dof: int = 0
+    #: the RMS slope (1/min) a healthy LED of the capture's rig drifts by: its rig file's
+    #: (:meth:`glossrig.core.rig.Lighting.drift_slope_rms_per_min`), what :func:`drift_test` takes as its null
+    baseline_per_min: float = drift_slope_rms_per_min()
 
 
 def gain_series(fs, terms=None) -> GainSeries | None:
@@ -254,18 +257,19 @@ def gain_series(fs, terms=None) -> GainSeries | None:
         s2 = hi
         fit = _trend(gs, covs, taus, inv_t, s2)
     slopes, cov, (d, d_se, alpha), _, _ = fit
-    return GainSeries(leds, slopes, cov, d / alpha * t_min, d_se / alpha * t_min, float(np.sqrt(s2)), ssr, dof)
+    return GainSeries(leds, slopes, cov, d / alpha * t_min, d_se / alpha * t_min, float(np.sqrt(s2)), ssr, dof,
+                      fs.fd.drift_rms_per_min)
 
 
 def drift_test(gsr: GainSeries | None, baseline: float | None = None) -> dict | None:
     """The drift test of the module docstring on a capture's frame gains (:func:`gain_series`): the
     LEDs' slopes in capture time, their Wald chi^2 against its bound, the jitter. ``baseline``: the
     RMS slope (1/min) a healthy rig's LEDs drift by (module docstring, "The rig's own drift"); None:
-    :func:`glossrig.core.led_fluctuations.drift_slope_rms_per_min`; 0: "no LED drifts at all". None
+    the series' own (``baseline_per_min``: its capture's rig file's); 0: "no LED drifts at all". None
     without a series."""
     if gsr is None:
         return None
-    b = drift_slope_rms_per_min() if baseline is None else float(baseline)
+    b = gsr.baseline_per_min if baseline is None else float(baseline)
     se = np.sqrt(np.diag(gsr.cov))
     # Wald statistic of "no LED drifts more than the rig's own": the slopes share the shutter term, so their
     # covariance is used whole, and each LED's own drift adds b^2 to its slope's variance
