@@ -21,10 +21,24 @@ manifest's checksums are updated. The stated black level is left unchanged.
   to within a few pixels) - as the twin's lens fall-off (:mod:`glossrig.twin.effects`), applied to the
   whole frame: the sample, the holder and the marker's white patch alike (saturated pixels stay
   saturated).
+
+**Rounding.** A raw file holds integers, and the rewritten value ``y`` is generally not one. Rounding
+it to the nearest integer is a deterministic map that loses a small change of a dark pixel: a shutter
+error of 8 % of the frame's time turns x DN above black into round(1.08 x) = x for every x up to 6
+DN, so the effect is simply not in the darkest pixels of the shortest frames - where a shutter error
+is largest. Measured on a matte twin capture's sample crop (two LEDs, a shutter error of 2e-5 s on
+a shortest exposure of 2.5e-4 s, the same noise with and without it): the frame gains read 83 % of
+it, 2.4 of their standard errors low (the blind studies' shutter trials were 2-3 standard errors
+low). So the value is rounded stochastically - ``floor(y + u)``, u uniform in [0, 1) - whose
+expectation is y: the written effect is the intended one on average at every signal level, at the
+price of a rounding noise of at most 1/4 DN^2 (the camera's own quantisation is 1/12). An integer y
+(a whole-DN black offset, a pixel the effect leaves alone) is written unchanged. The draws are
+seeded by the effect, its value and the file's name, so a rewrite is reproducible.
 """
 from __future__ import annotations
 
 import shutil
+import zlib
 from datetime import datetime
 from pathlib import Path
 
@@ -36,6 +50,13 @@ from glossrig.core.errors import InputError
 REWRITABLE = ("black_level_offset", "sensor_nonlinearity", "axis_step", "shutter_error", "channel_response",
               "vignetting")
 CFA_NAMES = {0: "R", 1: "G", 2: "B"}
+
+
+def stochastic_round(y: np.ndarray, key: str) -> np.ndarray:
+    """``floor(y + u)`` with u uniform in [0, 1), seeded by ``key``: integers whose expectation is
+    ``y`` (module docstring, "Rounding"); an integer value is returned unchanged."""
+    u = np.random.default_rng(zlib.crc32(key.encode())).random(np.shape(y))
+    return np.floor(np.asarray(y, float) + u)
 
 
 def rewrite_capture(src, dst, effect: str, value: float) -> Path:
@@ -79,7 +100,7 @@ def rewrite_capture(src, dst, effect: str, value: float) -> Path:
             if effect == "channel_response":
                 keep = keep | (fr.channel_index() != 0)
             dn = np.where(keep, dn, black + x * (1.0 - value * np.maximum(x, 0) / (fr.white - black)))
-        mosaic = np.clip(np.round(dn), 0, fr.white).astype(np.uint16)
+        mosaic = np.clip(stochastic_round(dn, f"{effect}={value!r}:{im.file}"), 0, fr.white).astype(np.uint16)
         cfa = "".join(CFA_NAMES[int(c)] for c in np.asarray(fr.cfa).ravel())
         im.sha256 = write_dng(p, mosaic, cfa=cfa, black_level=tuple(int(b) for b in np.asarray(fr.black).ravel()),
                               white_level=int(fr.white), exposure_s=im.exposure_s, iso=im.iso,
