@@ -41,19 +41,23 @@ def _table(causes):
 @pytest.mark.parametrize("seed", [2, 3])
 def test_black_offset_explains_shutter_error_and_led_drift_away(seed):
     """A black offset alone (3-15 DN): fitted alone, shutter_error and led_drift also gain far above
-    the threshold (both bend the short exposures of dark pixels); fitted on top of the offset they
-    gain nothing beyond the null spread, so they are blocked by it and the offset stays named."""
+    the threshold (both bend the short exposures of dark pixels) - their tests pass, and only their check
+    (the gains' structure common to the LEDs per exposure time, which the offset makes) stops them; fitted
+    on top of the offset they gain nothing beyond the null spread, so they are blocked by it and the
+    offset stays named."""
     b = float(np.random.default_rng(seed).uniform(3, 15))
     causes = frame_causes(synthetic_frames(seed, black_offset=b))
     by = _by_name(causes)
     w = winner(causes)
     assert w is not None and w.name == "black_level_offset" and w.eligible, _table(causes)
     assert abs(w.params["b_dn"] - b) < 1.0
-    # the drift's test on the frame gains: alone it passes by far (the failure the conditioning removes) ...
-    assert by["led_drift"].significant and by["led_drift"].test["chi2"] > 10 * by["led_drift"].test["bound"]
+    # the drift's test on the frame gains: alone it passes by far (the failure the conditioning removes), and
+    # its check fails: the offset bends every LED's gains alike ...
+    d = by["led_drift"]
+    assert d.significant_without_check and d.test["chi2"] > 10 * d.test["bound"] and not d.check["passed"]
     for name in ("shutter_error", "led_drift"):
         c = by[name]
-        if not c.significant:       # the shutter's test alone: the offset bends its term less than 4 sigma
+        if not c.significant_without_check:   # the shutter's test alone: the offset bends its term less than 4 sigma
             assert c.eligible is False and "conditional" not in c.params
             continue
         cond = c.params["conditional"]
@@ -84,10 +88,11 @@ def test_black_offset_and_nonlinearity_both_stay_named():
     assert "still gains" in nl.note
     for name in ("shutter_error", "led_drift"):
         c = by[name]
-        assert c.significant, _table(causes)        # alone: it absorbs part of both effects
-        # its own test (the frame gains) fails on top of the offset alone, or of the offset and the compression
+        assert c.significant_without_check, _table(causes)        # alone: it absorbs part of both effects
+        # on top of the offset alone, or of the offset and the compression, its own test (the frame gains) or
+        # its check (their structure common to the LEDs, which the compression left undone still makes) fails
         assert c.blocked_by in ("black_level_offset", "black_level_offset + sensor_nonlinearity"), _table(causes)
-        assert not c.params["conditional"]["test"]["passed"]
+        assert not c.params["conditional"]["significant"]
 
 
 def test_channel_response_explains_the_common_nonlinearity_away():

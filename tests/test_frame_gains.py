@@ -238,3 +238,62 @@ def test_report_keeps_the_check_and_says_why_a_jitter_made_compression_is_not_na
     c = back["sensor_nonlinearity"]
     assert not c["significant"] and not c["check"]["passed"]
     assert "does not survive a free gain per frame" in c["note"]
+
+
+T_SYN = 0.00025 * 2.0 ** np.arange(16)      # synthetic_frames' exposure times
+CAMERA_EFFECTS = {
+    # a 3 % gain on every exposure of 1 s or longer (a camera's long-exposure mode): the last four frames
+    "long_exposure_step": np.where(T_SYN >= 1.0, 1.03, 1.0),
+    # a 3 % step half-way through every sequence (the same for both LEDs: the camera's, not an LED's)
+    "step_half_way": np.where(np.arange(16) >= 8, 1.03, 1.0),
+}
+
+
+@pytest.mark.parametrize("effect", sorted(CAMERA_EFFECTS))
+@pytest.mark.parametrize("seed", [130, 131])
+def test_a_camera_effect_that_follows_the_exposure_is_no_drift_and_no_shutter_error(effect, seed):
+    """A gain that follows the exposure setting, the same for every LED, is outside the catalogue: a trend per
+    LED takes enough of it to pass the drift test (on a matte twin capture such a 3 % step read 42.6-57.2
+    against 19.3 and was named led_drift). The gains' structure common to the LEDs per exposure time beyond
+    the trends and the shutter term is significant (no jitter, as the blind study's --ideal captures: a 3 %
+    step against per-frame gain errors of about 0.1 %), so neither frame-gain cause is named, and the
+    structure is an "unexplained" entry along exposure_s whose profile shows the step's size. (With 0.5 %
+    jitter on two LEDs the same step is at the test's limit: 43.2 against 47.2 on seed 130; the twin's
+    captures with the thesis fluctuations have eight or sixteen LED sequences.)"""
+    from glossrig.core.diagnose.frame_gains import CAMERA_KEY, camera_entry
+    from glossrig.core.diagnose.unexplained import frame_entries
+
+    causes = {c.name: c for c in frame_causes(synthetic_frames(seed, exposure_gain=CAMERA_EFFECTS[effect]))}
+    cam = causes["led_drift"].test["camera"]
+    assert cam["significant"], cam
+    assert not causes["led_drift"].significant and not causes["shutter_error"].significant
+    assert not any(c.eligible for c in causes.values()), [c.name for c in causes.values() if c.eligible]
+    entry = camera_entry(list(causes.values()))
+    assert entry["significant"] and entry["judged"]
+    assert abs(entry["effect"] - 0.03) < 0.01, entry["effect"]          # the step's size, within a third
+    e = [u for u in frame_entries({CAMERA_KEY: entry}) if u["space"] == "frame_gains"]
+    assert e and e[0]["variable"] == "exposure_s" and e[0]["significant"]
+
+
+@pytest.mark.parametrize("kw", [{"drift": [0.012, 0.0]}, {"drift": [0.01, 0.01]}, {"jitter": 0.005},
+                                {"shutter": 4e-5}, {}], ids=["drift", "common_drift", "jitter", "shutter", "null"])
+def test_drift_jitter_and_shutter_leave_no_camera_structure(kw):
+    """What the catalogue's frame-gain causes do - an LED's drift (or both LEDs' alike, a linear trend the
+    per-LED trends take), jitter, a shutter error - leaves no structure common to the LEDs per exposure time
+    beyond the trends and the shutter term: the statistic is chi^2 with its degrees of freedom under the
+    noise model, below its 4-sigma bound (measured 2.6-35.4 against 45.5-47.2 on seeds 41-82)."""
+    causes = {c.name: c for c in frame_causes(synthetic_frames(140, **kw))}
+    cam = causes["led_drift"].test["camera"]
+    assert not cam["significant"], cam
+
+
+def test_a_named_black_offset_leaves_the_camera_structure_unjudged():
+    """A black offset bends the gains itself (the additive DN weigh most in the short exposures): the
+    gains carry structure common to the LEDs, but with the offset named the entry is not judged."""
+    from glossrig.core.diagnose.frame_gains import camera_entry
+
+    causes = frame_causes(synthetic_frames(90, black_offset=8))
+    names = [c.name for c in causes if c.eligible]
+    assert "black_level_offset" in names, names
+    entry = camera_entry(causes)
+    assert not entry["significant"] and not entry["judged"]

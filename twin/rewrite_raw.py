@@ -16,6 +16,10 @@ manifest's checksums are updated. The stated black level is left unchanged.
   beyond the middle; on the thesis rig the cylinder axis runs along the image's x axis, so this
   is a step half-way along the axis: a smudge or crease of the wrapped sample). No cause of
   diagnose's catalogue models it: diagnose must call it "unexplained", along the axis (issue 14).
+* ``exposure_step=s``: the signal above black times 1 + s in every frame of a nominal exposure of
+  1 s or longer, every LED alike (a camera that reads long exposures another way: long-exposure
+  noise reduction, another readout mode). Outside the catalogue too - neither an LED's drift nor a
+  shutter error (:mod:`glossrig.core.diagnose.frame_gains`): "unexplained", along exposure_s.
 * ``vignetting=k``: the signal above black times ``1 - k r^2 / r_corner^2``, r from the image's
   centre (the lens's optical centre is not in the raw file; the rig's cameras have it at the centre
   to within a few pixels) - as the twin's lens fall-off (:mod:`glossrig.twin.effects`), applied to the
@@ -48,7 +52,9 @@ from glossrig.core.capture import load_manifest
 from glossrig.core.errors import InputError
 
 REWRITABLE = ("black_level_offset", "sensor_nonlinearity", "axis_step", "shutter_error", "channel_response",
-              "vignetting")
+              "vignetting", "exposure_step")
+#: exposure_step acts on the frames of at least this nominal exposure (s)
+LONG_EXPOSURE_S = 1.0
 CFA_NAMES = {0: "R", 1: "G", 2: "B"}
 
 
@@ -88,6 +94,9 @@ def rewrite_capture(src, dst, effect: str, value: float) -> Path:
             y = fr.origin[1] + np.arange(dn.shape[0])[:, None] - cy
             fall = 1.0 - value * (x ** 2 + y ** 2) / (cx ** 2 + cy ** 2)
             dn = np.where(dn >= fr.white, dn, black + (dn - black) * fall)
+        elif effect == "exposure_step":
+            if im.exposure_s >= LONG_EXPOSURE_S:
+                dn = np.where(dn >= fr.white, dn, black + (dn - black) * (1.0 + value))
         elif effect == "shutter_error":
             x = dn - black
             dn = np.where(dn >= fr.white, dn, black + x * (im.exposure_s + value) / im.exposure_s)

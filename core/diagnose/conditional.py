@@ -193,7 +193,7 @@ def _conditional(fs, sel_terms, sel_thetas, base_err, cand: CauseResult, folds) 
         errs.append(_held_out(fs, sel_terms + [t], th, fold))
         fits.append(th)
     gains = [(e0 - e1) / e0 if e0 > 0 else 0.0 for e0, e1 in zip(base_err, errs)]
-    from glossrig.core.diagnose.frame_gains import TESTS, gain_series, sensor_check
+    from glossrig.core.diagnose.frame_gains import TESTS, camera_check, gain_series, sensor_check
 
     # the terms at their estimates on top of each other (the mean of the folds' joint fits)
     est = [np.mean([fit[k] for fit in fits], axis=0) for k in range(len(sel_terms) + 1)]
@@ -206,11 +206,14 @@ def _conditional(fs, sel_terms, sel_thetas, base_err, cand: CauseResult, folds) 
         test = TESTS[cand.name](gain_series(fs, undone(sel_terms, est[:-1])))
         if test is None:
             test = {"passed": False, "rule": "no frame-gain series to test"}
-    if cand.check is not None:
+    if cand.check is not None and cand.test is not None:
+        # a frame-gain cause's check: the camera structure of the series its test was taken on again
+        check = camera_check(test)
+    elif cand.check is not None:
         # a cause with a check on the frame gains takes it on top of the selected causes: the frames with
         # their terms undone are the base, the frames with the candidate's undone as well the extension
-        check = sensor_check(gain_series(fs, undone(sel_terms, est[:-1])),
-                             gain_series(fs, undone(sel_terms + [t], est)), len(t.bounds))
+        check = sensor_check(gain_series(fs, undone(sel_terms, est[:-1]), camera=False),
+                             gain_series(fs, undone(sel_terms + [t], est), camera=False), len(t.bounds))
         if check is not None:
             check["on"] = [s.name for s in sel_terms]
     r = CauseResult(cand.name, cand.space, "", {}, {}, float(np.mean(errs)), float(np.mean(base_err)), gains,

@@ -310,6 +310,12 @@ def _frame_causes(fd: FrameData | FrameSet, log=None) -> list[CauseResult]:
                 f"{r.check['bound']:.1f}): an LED's frame-to-frame jitter can make it")
     add(shutter_cause(fs, series))
     add(_drift_cause(fs, series))
+    for r in out[-2:]:
+        if r.check is not None and not r.check["passed"] and r.significant_without_check:
+            r.note = (r.note + "; " if r.note else "") + (
+                f"its test passes, but the frames' gains carry structure common to every LED at each exposure time "
+                f"beyond the trends and the shutter term (chi^2 {r.check['chi2']:.1f} against {r.check['bound']:.1f}): "
+                "a camera effect outside the catalogue, or a sensor cause's, not this cause")
     add(hot_pixel_cause(fd))
     from glossrig.core.diagnose.conditional import explain_away
 
@@ -333,7 +339,7 @@ def _sensor_check(fs: FrameSet, r: CauseResult, series) -> dict | None:
     if t is None or series is None:
         return None
     th = theta(r.params[t.param])
-    return sensor_check(series, gain_series(fs, lambda i: t.kw(i, th)), len(th))
+    return sensor_check(series, gain_series(fs, lambda i: t.kw(i, th), camera=False), len(th))
 
 
 def channel_response_cause(fs: FrameSet, common: CauseResult) -> CauseResult:
@@ -410,7 +416,10 @@ def shutter_cause(fs: FrameSet, series=None) -> CauseResult:
     r = _frame_cause(fs, "shutter_error", doc, "delta_s", "seconds added to every nominal exposure",
                      shutter_bounds(fs),
                      lambda d: (lambda i, M: _linear_pred(fs, i, M, gain=(fs.T[i] + d) / fs.T[i])))
+    from glossrig.core.diagnose.frame_gains import camera_check
+
     r.test = shutter_test(gain_series(fs) if series is None else series)
+    r.check = camera_check(r.test)
     if r.test is not None:
         r.params["delta_s"], r.stderr["delta_s"] = r.test["delta_s"], r.test["stderr_s"]
         r.magnitude = r.test["delta_s"]
@@ -476,8 +485,10 @@ def _drift_cause(fs: FrameSet, series=None) -> CauseResult:
                 f"{test['jitter']:.2%}); fold_estimates: the per-pixel fits of the held-out score; "
                 "magnitude = largest |gain slope| (1/min)")
     mag = float(max(abs(v) for v in led_slopes.values()))
+    from glossrig.core.diagnose.frame_gains import camera_check
+
     r = CauseResult("led_drift", "frames", doc, params, stderr, ext_err, base_err, gains, len(fs.Z),
-                    magnitude=mag, test=test)
+                    magnitude=mag, test=test, check=camera_check(test))
     r.note = note
     return r
 
@@ -611,14 +622,22 @@ def frame_stage(sample_dir, measured, log=None, max_pixels: int | None = None):
     sample (it was built twice before), and the veil the dark pixels of each LED's crop read
     (:func:`glossrig.core.diagnose.stray_light.dark_veil`: stray light's frame-space signature).
     ``measured``: anything with the measurement's ``geometry`` (rotation -> crop and white-patch
-    mask); ``max_pixels`` as :class:`FrameSet`'s. Returns (causes, structure, veil)."""
+    mask); ``max_pixels`` as :class:`FrameSet`'s. The structure also holds the frame gains' structure
+    common to the LEDs per exposure time (:func:`glossrig.core.diagnose.frame_gains.camera_entry`, under
+    ``frame_gains.CAMERA_KEY``). Returns (causes, structure, veil)."""
     from glossrig.core.diagnose.data import load_frames
+    from glossrig.core.diagnose.frame_gains import CAMERA_KEY, camera_entry
     from glossrig.core.diagnose.residuals import frame_structure
     from glossrig.core.diagnose.stray_light import dark_veil
 
     fd = load_frames(sample_dir, measured)
     fs = FrameSet(fd, max_pixels=max_pixels)
-    return frame_causes(fs, log), frame_structure(fs), dark_veil(fd, measured.geometry)
+    causes = frame_causes(fs, log)
+    structure = frame_structure(fs)
+    cam = camera_entry(causes)
+    if cam is not None:
+        structure[CAMERA_KEY] = cam
+    return causes, structure, dark_veil(fd, measured.geometry)
 
 
 class FrameStage(InWorker):

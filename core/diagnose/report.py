@@ -341,7 +341,9 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
           + "); led_drift and shutter_error are judged by their own test on the frames' gains instead (the "
           "threshold column shows its chi^2 against its bound); black_level_offset, sensor_nonlinearity and "
           "channel_response must also pass a check on the frames' gains (their structure survives a free gain per "
-          "frame: report.json's check). Sensor-level (frames, pixels) causes are named "
+          "frame: report.json's check), led_drift and shutter_error a check that the gains carry no structure "
+          "common to every LED per exposure time beyond the LEDs' trends and the shutter term (a camera effect "
+          "outside the catalogue). Sensor-level (frames, pixels) causes are named "
           "first: light and geometry causes cannot bend "
           "the raw exposure series.", "",
           "| cause | space | gain | threshold | eligible | params | note |", "|---|---|---|---|---|---|---|"]
@@ -355,7 +357,9 @@ def write_report(out, causes: list[CauseResult], base_errors: dict, structure: d
         L += ["", "## Residual structure no cause explains", "",
               "Significant in BRDF space: a smooth function of the variable, fitted on the training folds, lowers "
               "the held-out error by more than the threshold in every fold (the causes' rule); effect and p describe "
-              "the residual on all rows and do not decide.", "",
+              "the residual on all rows and do not decide. In frame_gains: the frames' gains carry structure common "
+              "to every LED at each exposure time beyond the LEDs' trends and the shutter term (a chi^2 drop beyond "
+              "its 4-sigma bound; effect: that common gain's most significant step between adjacent exposure times).", "",
               "| variable | space | residual after | held-out gain | threshold | effect | p | significant |",
               "|---|---|---|---|---|---|---|---|"]
         L += [f"| {e['variable']} | {e.get('space')} | "

@@ -39,6 +39,15 @@ Frame space keeps the in-sample rule: the frame structure arrives as bins over a
 (:func:`glossrig.core.diagnose.residuals.frame_structure`, no folds), so a variable is
 significant there when its bin means are inconsistent with zero (chi^2 beyond P_LEVEL,
 Bonferroni-corrected over the frame variables) and spread by more than FRAME_EFFECT_MIN sigma.
+One more frame entry comes from the frames' gains (space ``frame_gains``,
+:func:`glossrig.core.diagnose.frame_gains.camera_structure`): a gain common to every LED at each
+exposure time beyond the LEDs' trends and the shutter term - a camera effect that follows the
+exposure setting, which neither an LED nor a shutter error makes - significant by its own chi^2
+test at the 4-sigma tail, its effect the common gain's most significant step between adjacent
+exposure times; not judged where a sensor cause whose terms bend the gains (a black offset, a
+compression) is named. A 3 % gain on the frames of 1 s or longer spreads the pixel residual by
+0.59 sigma only (under FRAME_EFFECT_MIN, on a matte twin capture's crop), while its gains'
+statistic reads 1253 against 50.5.
 
 Which model's residual: the flexible material model's for every variable (refitted on each
 fold's training rows). A named BRDF-space cause must also explain what it is named for: its
@@ -254,8 +263,6 @@ def unexplained(m, frame_structure: dict | None = None, after=None, after_model=
     if pred_all is None:
         pred_all = flexible(np.ones(len(c["y"]), bool))
     vars_ = brdf_variables(m)
-    frame_vars = {"exposure_s": "exposure_s (log10)", "capture_order": "capture order (min from sequence middle)",
-                  "frame_signal": "signal (log10 DN)"}
     again = after is not None and getattr(after, "prediction", None) is not None
     material = getattr(after, "kind", "instrument") != "instrument"
     names = POSITION_VARS if again else ()
@@ -265,6 +272,19 @@ def unexplained(m, frame_structure: dict | None = None, after=None, after_model=
         # after.prediction: the cause fitted on all rows (the flexible one's equals pred_all, flexible_cause)
         out += _brdf_entries(after_model if after_model is not None else m, pa, after.prediction,
                              {k: vars_[k] for k in names}, after=after.name, partial_angles=material)
+    return out + frame_entries(frame_structure)
+
+
+def frame_entries(frame_structure: dict | None) -> list[dict]:
+    """The frame-space entries of :func:`unexplained` (module docstring): the linear sensor's residual binned
+    by exposure time, capture order and signal (:func:`glossrig.core.diagnose.residuals.frame_structure`,
+    in-sample rule), and the frame gains' structure common to the LEDs per exposure time
+    (:func:`glossrig.core.diagnose.frame_gains.camera_structure`, its own test)."""
+    from glossrig.core.diagnose.frame_gains import CAMERA_KEY
+
+    out: list[dict] = []
+    frame_vars = {"exposure_s": "exposure_s (log10)", "capture_order": "capture order (min from sequence middle)",
+                  "frame_signal": "signal (log10 DN)"}
     n_frame = len(frame_vars) if frame_structure else 0
     level = P_LEVEL / max(n_frame, 1)
     for k, key in (frame_vars.items() if frame_structure else ()):
@@ -280,6 +300,13 @@ def unexplained(m, frame_structure: dict | None = None, after=None, after_model=
                     "p": p, "significant": bool(p < level and eff > FRAME_EFFECT_MIN),
                     "split": "none (in-sample chi^2 of the bin means, module docstring)",
                     "profile": {"x": b["x"], "mean": b["mean"], "n": b["n"]}})
+    cam = (frame_structure or {}).get(CAMERA_KEY)
+    if cam is not None:
+        out.append({"variable": "exposure_s", "space": "frame_gains", "effect": cam["effect"],
+                    "effect_unit": "relative gain common to the LEDs (its largest step between exposure times)",
+                    "p": float(chi2_dist.sf(cam["chi2"], cam["dof"])), "significant": cam["significant"],
+                    "split": "none (in-sample chi^2 drop of the frame gains' fit, frame_gains.camera_structure)",
+                    "note": cam["note"], "profile": {"x": cam["x"], "mean": cam["mean"], "n": cam["n"]}})
     return out
 
 
