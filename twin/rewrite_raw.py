@@ -32,8 +32,7 @@ error of 8 % of the frame's time turns x DN above black into round(1.08 x) = x f
 DN, so the effect is simply not in the darkest pixels of the shortest frames - where a shutter error
 is largest. Measured on a matte twin capture's sample crop (two LEDs, a shutter error of 2e-5 s on
 a shortest exposure of 2.5e-4 s, the same noise with and without it): the frame gains read 83 % of
-it, 2.4 of their standard errors low (the blind studies' shutter trials were 2-3 standard errors
-low). So the value is rounded stochastically - ``floor(y + u)``, u uniform in [0, 1) - whose
+it, 2.4 of their standard errors low. So the value is rounded stochastically - ``floor(y + u)``, u uniform in [0, 1) - whose
 expectation is y: the written effect is the intended one on average at every signal level, at the
 price of a rounding noise of at most 1/4 DN^2 (the camera's own quantisation is 1/12). An integer y
 (a whole-DN black offset, a pixel the effect leaves alone) is written unchanged. The draws are
