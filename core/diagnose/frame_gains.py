@@ -280,22 +280,25 @@ def gain_series(fs, terms=None, camera: bool = True) -> GainSeries | None:
     fit = _trend(gs, covs, taus, inv_t, 0.0)
     s2 = 0.0
     if fit[3] > fit[4]:
-        # method of moments: the jitter variance at which the pooled chi^2 equals its degrees of
-        # freedom (chi^2 falls as s2 grows); bisection on a log scale up to 20 % jitter
-        lo, hi = 1e-12, 0.04
-        for _ in range(60):
-            mid = float(np.sqrt(lo * hi))
-            f = _trend(gs, covs, taus, inv_t, mid)
-            if f[3] > f[4]:
-                lo = mid
-            else:
-                hi = mid
-        s2 = hi
+        s2 = _jitter_by_moments(lambda v: _trend(gs, covs, taus, inv_t, v)[3], fit[4], 60)
         fit = _trend(gs, covs, taus, inv_t, s2)
     slopes, cov, (d, d_se, alpha), _, _ = fit
     b = fs.fd.drift_rms_per_min
     return GainSeries(leds, slopes, cov, d / alpha * t_min, d_se / alpha * t_min, float(np.sqrt(s2)), ssr, dof, b,
                       camera_structure(gs, covs, taus, inv_t, t_e, b) if camera else None)
+
+
+def _jitter_by_moments(chi_of, dof: float, steps: int) -> float:
+    """Method of moments: the jitter variance at which a fit's pooled generalised chi^2 (``chi_of(s2)``,
+    falling as s2 grows) equals its degrees of freedom; bisection on a log scale up to 20 % jitter."""
+    lo, hi = 1e-12, 0.04
+    for _ in range(steps):
+        mid = float(np.sqrt(lo * hi))
+        if chi_of(mid) > dof:
+            lo = mid
+        else:
+            hi = mid
+    return hi
 
 
 class _CommonGainsFit:
@@ -360,15 +363,8 @@ def camera_structure(gs, covs, taus, inv_t, t_e, b: float) -> dict | None:
     r_full = int(np.linalg.matrix_rank(N_full, hermitian=True))
     s2 = 0.0
     if chi_full > f.n - r_full:
-        # method of moments on the fullest model: the jitter at which its chi^2 equals its degrees of freedom
-        lo, hi = 1e-12, 0.04
-        for _ in range(40):
-            mid = float(np.sqrt(lo * hi))
-            if f.fit(mid, True)[0] > f.n - r_full:
-                lo = mid
-            else:
-                hi = mid
-        s2 = hi
+        # the jitter by moments on the fullest model
+        s2 = _jitter_by_moments(lambda v: f.fit(v, True)[0], f.n - r_full, 40)
         chi_full = f.fit(s2, True)[0]
     chi_trends, N_trends, res = f.fit(s2, False)
     dof = r_full - int(np.linalg.matrix_rank(N_trends, hermitian=True))
@@ -376,7 +372,7 @@ def camera_structure(gs, covs, taus, inv_t, t_e, b: float) -> dict | None:
         return None
     stat = chi_trends - chi_full
     bound = float(chi2.isf(TAIL, dof))
-    keys = np.unique(np.concatenate(t_e))
+    keys = f.keys
     num, den = np.zeros(keys.size), np.zeros(keys.size)
     for (r, v), te in zip(res, t_e):
         j = np.searchsorted(keys, te)
